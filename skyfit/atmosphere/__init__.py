@@ -1,0 +1,17 @@
+"""Atmosphere parameters, constants with sources, and config loading."""
+from .config import ConfigError, atmosphere_from_config, load_atmosphere, load_yaml, spectral_tables
+from .params import MIE_PHASES, Atmosphere, angstrom_extinction, rayleigh_power_law
+from .solar import solar_irradiance
+
+__all__ = [
+    "Atmosphere",
+    "ConfigError",
+    "MIE_PHASES",
+    "angstrom_extinction",
+    "atmosphere_from_config",
+    "load_atmosphere",
+    "load_yaml",
+    "rayleigh_power_law",
+    "solar_irradiance",
+    "spectral_tables",
+]

@@ -1,0 +1,183 @@
+"""The atmosphere a renderer sees: per-wavelength coefficients as tensors, validated.
+
+All quantities are SI (metres, 1/m, nm for wavelengths, W/(m^2 nm) for
+irradiance). Every coefficient is a tensor so that gradients can flow to it;
+the object never changes the dtype or device it is given.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import torch
+from torch import Tensor
+
+from . import constants as C
+
+MIE_PHASES = ("cornette_shanks", "henyey_greenstein")
+
+
+@dataclasses.dataclass
+class Atmosphere:
+    """Spectral description of a planet's atmosphere (Bruneton & Neyret 2008, Sec. 2).
+
+    Attributes (W = number of wavelengths):
+        wavelengths: shape (W,). [nm]
+        bottom_radius, top_radius: planet and top-of-atmosphere radii. [m]
+        rayleigh_scattering: sea-level Rayleigh scattering, shape (W,). [1/m]
+        rayleigh_scale_height: shape (). [m]
+        mie_scattering, mie_extinction: sea-level aerosol coefficients, shape (W,). [1/m]
+        mie_scale_height: shape (). [m]
+        mie_g: phase asymmetry in (-1, 1), shape (). [1]
+        ground_albedo: Lambertian albedo, shape (W,). [1]
+        solar_irradiance: extraterrestrial irradiance at the planet, shape (W,). [W/(m^2 nm)]
+        ozone_absorption: absorption at peak ozone density, shape (W,); slot for
+            the multiple-scattering issue, not used by the single-scattering renderer. [1/m]
+        ozone_layer_m: (bottom, peak, top) altitudes of the ozone tent profile. [m]
+        sun_angular_radius: [rad]
+        mie_phase: one of MIE_PHASES.
+        name: label for reports.
+    """
+
+    wavelengths: Tensor
+    bottom_radius: float
+    top_radius: float
+    rayleigh_scattering: Tensor
+    rayleigh_scale_height: Tensor
+    mie_scattering: Tensor
+    mie_extinction: Tensor
+    mie_scale_height: Tensor
+    mie_g: Tensor
+    ground_albedo: Tensor
+    solar_irradiance: Tensor
+    ozone_absorption: Tensor | None = None
+    ozone_layer_m: tuple[float, float, float] = (10_000.0, 25_000.0, 40_000.0)
+    sun_angular_radius: float = C.SUN_ANGULAR_RADIUS_RAD
+    mie_phase: str = "cornette_shanks"
+    name: str = "atmosphere"
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    # -- checks -----------------------------------------------------------
+    def validate(self) -> None:
+        """Raise ValueError naming the first out-of-range parameter."""
+        if not (self.bottom_radius > 0):
+            raise ValueError(f"bottom_radius must be > 0 m, got {self.bottom_radius}")
+        if not (self.top_radius > self.bottom_radius):
+            raise ValueError(
+                f"top_radius ({self.top_radius} m) must be greater than bottom_radius ({self.bottom_radius} m)"
+            )
+        w = self.wavelengths.shape
+        if self.wavelengths.ndim != 1 or w[0] < 1:
+            raise ValueError("wavelengths must be a 1-D tensor with at least one entry [nm]")
+        if bool((self.wavelengths <= 0).any()):
+            raise ValueError("wavelengths must be positive [nm]")
+        for name in ("rayleigh_scattering", "mie_scattering", "mie_extinction", "ground_albedo", "solar_irradiance"):
+            t = getattr(self, name)
+            if t.shape != w:
+                raise ValueError(f"{name} must have shape {tuple(w)} (one value per wavelength), got {tuple(t.shape)}")
+            if not bool(torch.isfinite(t).all()):
+                raise ValueError(f"{name} must be finite")
+            if bool((t < 0).any()):
+                raise ValueError(f"{name} must be >= 0, got min {float(t.min()):.4g}")
+        if bool((self.mie_scattering > self.mie_extinction * (1 + 1e-12)).any()):
+            raise ValueError("mie_scattering must not exceed mie_extinction (single-scattering albedo <= 1)")
+        if bool((self.ground_albedo > 1).any()):
+            raise ValueError("ground_albedo must be in [0, 1]")
+        for name in ("rayleigh_scale_height", "mie_scale_height"):
+            h = getattr(self, name)
+            if not bool(torch.isfinite(h).all()) or bool((h <= 0).any()):
+                raise ValueError(f"{name} must be > 0 m, got {h.detach().cpu().numpy()}")
+        g = self.mie_g
+        if not bool(torch.isfinite(g).all()) or bool((g <= -1).any()) or bool((g >= 1).any()):
+            raise ValueError(f"mie_g must be in the open interval (-1, 1), got {g.detach().cpu().numpy()}")
+        if self.mie_phase not in MIE_PHASES:
+            raise ValueError(f"mie_phase must be one of {MIE_PHASES}, got {self.mie_phase!r}")
+        if self.ozone_absorption is not None:
+            if self.ozone_absorption.shape != w or bool((self.ozone_absorption < 0).any()):
+                raise ValueError("ozone_absorption must be >= 0 with one value per wavelength")
+        lo, peak, hi = self.ozone_layer_m
+        if not (0 <= lo < peak < hi):
+            raise ValueError(f"ozone_layer_m must satisfy 0 <= bottom < peak < top, got {self.ozone_layer_m}")
+        if not (0 < self.sun_angular_radius < 0.1):
+            raise ValueError(f"sun_angular_radius must be in (0, 0.1) rad, got {self.sun_angular_radius}")
+
+    # -- conveniences -----------------------------------------------------
+    @property
+    def scale_heights(self) -> Tensor:
+        """(H_R, H_M) stacked, shape (2,). [m]"""
+        return torch.stack([self.rayleigh_scale_height.reshape(()), self.mie_scale_height.reshape(())])
+
+    @property
+    def extinction_matrix(self) -> Tensor:
+        """Rows (Rayleigh, Mie) of sea-level extinction, shape (2, W): tau = column @ this. [1/m]"""
+        return torch.stack([self.rayleigh_scattering, self.mie_extinction])
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.rayleigh_scattering.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.rayleigh_scattering.device
+
+    def tensor_fields(self) -> list[str]:
+        return [f.name for f in dataclasses.fields(self) if isinstance(getattr(self, f.name), Tensor)]
+
+    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> "Atmosphere":
+        """A copy with every tensor moved to ``dtype`` / ``device``."""
+        kw = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            kw[f.name] = v.to(dtype=dtype, device=device) if isinstance(v, Tensor) else v
+        return Atmosphere(**kw)
+
+    def replace(self, **changes) -> "Atmosphere":
+        """A validated copy with some fields replaced (e.g. a tensor requiring grad)."""
+        return dataclasses.replace(self, **changes)
+
+    def summary(self) -> dict:
+        """Plain-Python description for JSON reports and EXR headers."""
+        def val(x):
+            if isinstance(x, Tensor):
+                x = x.detach().cpu()
+                return x.item() if x.ndim == 0 else x.tolist()
+            return x
+
+        return {f.name: val(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+
+def angstrom_extinction(wavelengths_nm: Tensor, beta: float | Tensor, alpha: float | Tensor, scale_height_m) -> Tensor:
+    """Sea-level aerosol extinction from the Angstrom turbidity law.
+
+    The aerosol optical depth is tau(lambda) = beta * (lambda / 1 um)^-alpha
+    (Angstrom 1929); spread over an exponential layer of scale height H the
+    sea-level extinction is tau / H. This is how Bruneton's 2017 evaluation
+    sets Mie extinction (clear-sky-models, atmosphere.cc).
+
+    Args:
+        wavelengths_nm: shape (W,). [nm]
+        beta: Angstrom turbidity (optical depth at 1 um). [1]
+        alpha: Angstrom exponent. [1]
+        scale_height_m: aerosol scale height. [m]
+
+    Returns:
+        Extinction coefficient at sea level, shape (W,). [1/m]
+    """
+    lam_um = wavelengths_nm / 1000.0
+    return beta / scale_height_m * lam_um ** (-alpha)
+
+
+def rayleigh_power_law(wavelengths_nm: Tensor, coefficient: float, exponent: float = 4.0) -> Tensor:
+    """Sea-level Rayleigh scattering ``coefficient * (lambda / 1 um)^-exponent`` [1/m].
+
+    Bruneton 2017 uses coefficient 1.24062e-6 /m and exponent 4.
+    """
+    return coefficient * (wavelengths_nm / 1000.0) ** (-exponent)
+
+
+def _check_finite(x: float, what: str) -> float:
+    if not math.isfinite(x):
+        raise ValueError(f"{what} must be finite, got {x}")
+    return x

@@ -1,0 +1,277 @@
+"""Command-line interface: the only place that reads files and flags (CONTRACT.md).
+
+Every user mistake ends in one line on stderr and exit status 2; outputs are
+written atomically, so a failed command leaves no partial file.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+EXIT_USAGE = 2
+DEFAULT_WAVELENGTHS = "400:700:20"
+
+
+class UserError(ValueError):
+    """A mistake in the command line or its inputs."""
+
+
+# -- parsing helpers -----------------------------------------------------------
+def parse_wavelengths(text: str) -> np.ndarray:
+    """``START:STOP:STEP`` (inclusive of STOP when it falls on the grid) or a comma list, in nm."""
+    try:
+        if ":" in text:
+            parts = [float(p) for p in text.split(":")]
+            if len(parts) != 3 or parts[2] <= 0 or parts[1] < parts[0]:
+                raise ValueError
+            start, stop, step = parts
+            lam = np.arange(start, stop + step * 1e-9, step)
+        else:
+            lam = np.array([float(p) for p in text.split(",") if p.strip()])
+    except ValueError:
+        raise UserError(f"--wavelengths must be START:STOP:STEP or a comma list in nm, got {text!r}") from None
+    if lam.size == 0 or np.any(~np.isfinite(lam)) or np.any(lam < 200) or np.any(lam > 3000):
+        raise UserError(f"--wavelengths must lie in 200-3000 nm, got {text!r}")
+    if np.unique(lam).size != lam.size:
+        raise UserError(f"--wavelengths has duplicates: {text!r}")
+    return lam
+
+
+def parse_integrator(text: str):
+    """``NAME`` or ``NAME:key=value,key=value`` -> integrator instance."""
+    from .transmittance import make_integrator
+
+    name, _, opts = text.partition(":")
+    settings: dict = {}
+    for item in filter(None, opts.split(",")):
+        key, eq, val = item.partition("=")
+        if not eq:
+            raise UserError(f"integrator option must be key=value, got {item!r}")
+        try:
+            settings[key.strip()] = int(val) if val.strip().lstrip("-").isdigit() else float(val)
+        except ValueError:
+            settings[key.strip()] = val.strip()
+    try:
+        return make_integrator(name.strip(), **settings)
+    except ValueError as e:
+        raise UserError(str(e)) from None
+
+
+def _dtype(name: str):
+    import torch
+
+    return {"float32": torch.float32, "float64": torch.float64}[name]
+
+
+def _check_device(device: str) -> str:
+    import torch
+
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise UserError(f"--device {device}: CUDA is not available on this machine")
+    return device
+
+
+# -- commands ------------------------------------------------------------------
+def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projection):
+    from .camera import FisheyeCamera
+    from .render import render_fisheye
+
+    cam = FisheyeCamera(size, projection=projection, up_azimuth_deg=getattr(args, "up_azimuth", 0.0))
+    return render_fisheye(
+        atm, cam, sun_zenith, sun_azimuth, integrator, altitude=args.altitude, view_samples=args.view_samples,
+        rule=args.rule, orders=args.orders, sun_disk=args.sun_disk,
+    )
+
+
+def _exr_payload(img, atm, integrator, args, sun_zenith, sun_azimuth, spectral: bool):
+    from . import __version__
+
+    rgb = img.rgb.detach().cpu().numpy()
+    chans = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "Y": img.xyz[..., 1].detach().cpu().numpy()}
+    if spectral:
+        spec = img.spectral.detach().cpu().numpy()
+        for k, lam in enumerate(atm.wavelengths.cpu().tolist()):
+            chans[f"L{lam:g}"] = spec[..., k]
+    meta = {
+        "skyfit_version": __version__,
+        "camera": img.camera.metadata(),
+        "sun": {"zenith_deg": sun_zenith, "azimuth_deg": sun_azimuth},
+        "observer_altitude_m": args.altitude,
+        "units": {
+            "L<nm>": "W/(m^2 sr nm)",
+            "R,G,B": "linear sRGB of XYZ with 683 lm/W (Y in cd/m^2)",
+            "Y": "cd/m^2",
+        },
+        "wavelengths_nm": atm.wavelengths.cpu().tolist(),
+        "integrator": integrator.settings(),
+        "view_samples": args.view_samples,
+        "rule": args.rule,
+        "orders": args.orders,
+        "atmosphere": atm.summary(),
+    }
+    return chans, meta
+
+
+def _sun_from_args(args) -> tuple[float, float]:
+    if args.time or args.location:
+        raise UserError("--time/--location need the sun-position module (issue 4); use --sun-zenith/--sun-azimuth")
+    if args.sun_zenith is None:
+        raise UserError("give the sun with --sun-zenith DEG [--sun-azimuth DEG]")
+    if not (0.0 <= args.sun_zenith <= 180.0):
+        raise UserError(f"--sun-zenith must be in [0, 180] degrees, got {args.sun_zenith}")
+    return float(args.sun_zenith), float(args.sun_azimuth)
+
+
+def cmd_render(args) -> int:
+    import torch
+
+    from .atmosphere import load_atmosphere
+    from .io import write_exr
+
+    out = Path(args.out)
+    if out.suffix.lower() != ".exr":
+        raise UserError(f"--out must name an .exr file, got {out}")
+    if args.size < 2 or args.size > 8192:
+        raise UserError(f"--size must be in 2..8192, got {args.size}")
+    if args.view_samples < 1:
+        raise UserError(f"--view-samples must be >= 1, got {args.view_samples}")
+    if args.orders != 1:
+        raise UserError(f"--orders {args.orders}: only single scattering (--orders 1) is implemented so far")
+    sun_zenith, sun_azimuth = _sun_from_args(args)
+    lam = parse_wavelengths(args.wavelengths)
+    integrator = parse_integrator(args.integrator)
+    device = _check_device(args.device)
+    atm = load_atmosphere(args.config, lam, dtype=_dtype(args.dtype), device=device)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        img = _render_image(args, atm, integrator, sun_zenith, sun_azimuth, args.size, args.projection)
+    elapsed = time.perf_counter() - t0
+    chans, meta = _exr_payload(img, atm, integrator, args, sun_zenith, sun_azimuth, args.spectral)
+    write_exr(out, chans, meta)
+    info = {"out": str(out), "seconds": round(elapsed, 4), "size": args.size, "channels": sorted(chans)}
+    print(json.dumps(info) if args.json else f"wrote {out} ({args.size}x{args.size}, {len(chans)} channels) in {elapsed:.2f} s")
+    return 0
+
+
+DEMO_SCENES = (("morning", 75.0, 90.0), ("noon", 25.0, 180.0), ("sunset", 88.0, 270.0))
+
+
+def cmd_demo(args) -> int:
+    import skimage.io
+    import torch
+
+    from .atmosphere import load_atmosphere
+    from .io import write_exr
+    from .render import tonemap_srgb8
+    from .transmittance import make_integrator
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    size = 96 if args.quick else 256
+    lam = parse_wavelengths(DEFAULT_WAVELENGTHS)
+    atm = load_atmosphere("earth", lam)
+    integrator = make_integrator("taylor")
+    ns = argparse.Namespace(altitude=0.0, view_samples=32, rule="trapezoid", orders=1, sun_disk=True)
+    report = []
+    for name, zen, az in DEMO_SCENES:
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            img = _render_image(ns, atm, integrator, zen, az, size, "equidistant")
+        dt = time.perf_counter() - t0
+        chans, meta = _exr_payload(img, atm, integrator, ns, zen, az, spectral=True)
+        write_exr(out / f"{name}.exr", chans, meta)
+        rgb = img.rgb.numpy()
+        exposure = 1.0 / max(float(np.percentile(rgb.mean(-1)[img.valid.numpy()], 90)), 1e-9)
+        tmp = out / f".{name}.png.tmp.png"
+        skimage.io.imsave(tmp, tonemap_srgb8(rgb, exposure), check_contrast=False)
+        tmp.replace(out / f"{name}.png")
+        zen_y = float(img.xyz[size // 2, size // 2, 1])
+        report.append({"scene": name, "sun_zenith_deg": zen, "sun_azimuth_deg": az, "zenith_luminance_cd_m2": zen_y, "seconds": round(dt, 3)})
+        if not args.json:
+            print(f"{name:8s} sun zenith {zen:5.1f} deg azimuth {az:5.1f} deg: zenith luminance {zen_y:8.1f} cd/m^2 ({dt:.2f} s) -> {out / (name + '.png')}")
+    (out / "demo.json").write_text(json.dumps(report, indent=2))
+    if args.json:
+        print(json.dumps(report))
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from .bench import run_bench
+
+    run_bench(out=Path(args.out), quick=args.quick, device=_check_device(args.device), as_json=args.json)
+    return 0
+
+
+# -- entry point ---------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    from .camera import PROJECTIONS
+    from .quadrature import RULES
+
+    p = argparse.ArgumentParser(prog="skyfit", description="Fit a physically based atmosphere to measured skies.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("render", help="render a fisheye sky to OpenEXR")
+    r.add_argument("config", help="atmosphere config YAML (or a shipped name: earth, earth_clear_sky_eval, earth_hazy, mars)")
+    r.add_argument("--out", required=True, help="output .exr file")
+    r.add_argument("--size", type=int, default=256, help="image size in pixels (default 256)")
+    r.add_argument("--projection", choices=PROJECTIONS, default="equidistant")
+    r.add_argument("--up-azimuth", type=float, default=0.0, help="azimuth of the image's up direction [deg]")
+    r.add_argument("--sun-zenith", type=float, help="sun zenith angle [deg]")
+    r.add_argument("--sun-azimuth", type=float, default=180.0, help="sun azimuth, clockwise from North [deg]")
+    r.add_argument("--time", help="ISO 8601 timestamp (needs the sun-position module)")
+    r.add_argument("--location", help="LAT,LON[,ELEV] (needs the sun-position module)")
+    r.add_argument("--altitude", type=float, default=0.0, help="observer altitude above the ground [m]")
+    r.add_argument("--integrator", default="taylor", help="NAME[:key=value,...], e.g. trapezoid:samples=64, taylor:a=0.45,b=0.45")
+    r.add_argument("--view-samples", type=int, default=32, help="samples of the outer (view-ray) integral")
+    r.add_argument("--rule", choices=RULES, default="trapezoid", help="outer quadrature rule")
+    r.add_argument("--orders", type=int, default=1, help="scattering orders (1 = single scattering)")
+    r.add_argument("--wavelengths", default=DEFAULT_WAVELENGTHS, help="START:STOP:STEP or comma list [nm]")
+    r.add_argument("--spectral", action="store_true", help="also write one channel L<nm> per wavelength")
+    r.add_argument("--sun-disk", action="store_true", help="add the attenuated solar disc")
+    r.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    r.add_argument("--device", default="cpu")
+    r.add_argument("--json", action="store_true")
+    r.set_defaults(func=cmd_render)
+
+    d = sub.add_parser("demo", help="render example skies (morning, noon, sunset) to PNG and EXR")
+    d.add_argument("--out", default="demo_out")
+    d.add_argument("--quick", action="store_true")
+    d.add_argument("--json", action="store_true")
+    d.set_defaults(func=cmd_demo)
+
+    b = sub.add_parser("bench", help="speed/accuracy table of the transmittance integrators")
+    b.add_argument("--out", default="bench_out")
+    b.add_argument("--quick", action="store_true", help="a reduced table for CI")
+    b.add_argument("--device", default="cpu")
+    b.add_argument("--json", action="store_true")
+    b.set_defaults(func=cmd_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .atmosphere import ConfigError
+    from .io import ExrError
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (UserError, ConfigError, ExrError, FileNotFoundError, PermissionError, IsADirectoryError) as e:
+        print(f"skyfit: error: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    except ValueError as e:  # parameter validation inside the library
+        print(f"skyfit: error: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("skyfit: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

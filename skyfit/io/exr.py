@@ -1,0 +1,78 @@
+"""OpenEXR in and out with a JSON metadata header (the ``openexr`` package).
+
+Writes are atomic: the image goes to a temporary file beside the target and is
+renamed into place only when complete, so a failure leaves no partial file.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+METADATA_KEY = "skyfit"
+"""EXR header attribute holding skyfit's metadata as a JSON string."""
+
+
+class ExrError(ValueError):
+    """An EXR file that cannot be read or lacks what skyfit needs."""
+
+
+def write_exr(path: str | Path, channels: dict[str, np.ndarray], metadata: dict | None = None) -> Path:
+    """Write float32 channels (each (H, W)) and a JSON metadata header atomically."""
+    import OpenEXR
+
+    path = Path(path)
+    if not channels:
+        raise ExrError("no channels to write")
+    shapes = {np.shape(v) for v in channels.values()}
+    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
+        raise ExrError(f"all EXR channels must share one 2-D shape, got {shapes}")
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    if metadata is not None:
+        header[METADATA_KEY] = json.dumps(metadata, sort_keys=True)
+    data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.exr", dir=path.parent)
+    os.close(fd)
+    try:
+        OpenEXR.File(header, data).write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def read_exr(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
+    """Read all channels (float32 arrays) and skyfit's metadata (empty dict if absent)."""
+    import OpenEXR
+
+    path = Path(path)
+    if not path.is_file():
+        raise ExrError(f"file not found: {path}")
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic != b"\x76\x2f\x31\x01":
+        raise ExrError(f"not an OpenEXR file: {path}")
+    try:
+        exr = OpenEXR.File(str(path))
+        chans = {}
+        for name, c in exr.channels().items():
+            px = np.asarray(c.pixels)
+            if px.ndim == 3:  # the binding groups R, G, B (and A) into one channel
+                letters = "RGBA" if name in ("RGB", "RGBA") else None
+                for k in range(px.shape[-1]):
+                    chans[letters[k] if letters else f"{name}.{k}"] = px[..., k]
+            else:
+                chans[name] = px
+        raw = exr.header().get(METADATA_KEY)
+    except Exception as e:  # the binding raises plain exceptions for corrupt files
+        raise ExrError(f"cannot read EXR {path}: {e}") from None
+    try:
+        meta = json.loads(raw) if raw else {}
+    except json.JSONDecodeError:
+        raise ExrError(f"EXR {path}: metadata header {METADATA_KEY!r} is not valid JSON") from None
+    return chans, meta

@@ -1,0 +1,137 @@
+"""Single-scattering radiance (Gałaj 2019 eq. 9; Bruneton & Neyret 2008 eqs. 1-7).
+
+    L(x, v, s) = E_sun  int_0^{l}  T(x, y) T(y, sun) sum_i beta_i(y) P_i(nu) dy     (+ ground)
+
+with T = exp(-sum_i beta_i^e column_i) from an optical-depth integrator, the
+outer integral over the view ray by a fixed rule with N samples. The sun is
+attenuated by the fraction of its disc above the horizon seen from each
+point (Bruneton 2017, GetTransmittanceToSun), which makes the shadow edge
+smooth and sun-below-horizon skies well defined.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from ..atmosphere import Atmosphere
+from ..geometry import atmosphere_segment, distance_to_top, point_along_ray, safe_sqrt, sun_cosine_along_ray
+from ..quadrature import nodes_weights, validate_rule
+from ..transmittance import ColumnFn, OpticalDepthIntegrator
+from .phase import mie_phase, rayleigh_phase
+
+
+def sun_visible_fraction(r: Tensor, mu_s: Tensor, bottom_radius: float, sun_angular_radius: float) -> Tensor:
+    """Fraction of the solar disc above the planet's horizon seen from radius r (Bruneton 2017). [1]
+
+    ``smoothstep(-sin_h * alpha_s, sin_h * alpha_s, mu_s - cos_h)`` with the
+    horizon's angle from the zenith given by sin_h = R / r.
+    """
+    sin_h = torch.clamp(bottom_radius / r, max=1.0)
+    cos_h = -safe_sqrt(1.0 - sin_h * sin_h)
+    w = sin_h * sun_angular_radius
+    x = torch.clamp((mu_s - cos_h + w) / (2.0 * w), 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def transmittance_to_sun(column_fn: ColumnFn, atm: Atmosphere, r: Tensor, mu_s: Tensor) -> Tensor:
+    """Transmittance from radius r to the sun, times its visible fraction, shape (..., W). [1]"""
+    length = distance_to_top(r, mu_s, atm.top_radius)
+    col = column_fn(r, mu_s, length)  # (..., K)
+    vis = sun_visible_fraction(r, mu_s, atm.bottom_radius, atm.sun_angular_radius)
+    return torch.exp(-col @ atm.extinction_matrix) * vis.unsqueeze(-1)
+
+
+def _render_chunk(atm, column_fn, r, mu, mu_s, nu, x, w, ground, sun_disk):
+    Rb, Rt = atm.bottom_radius, atm.top_radius
+    start, end, hits = atmosphere_segment(r, mu, Rb, Rt)
+    seg = end - start
+    # Start of the segment (the observer, or where a ray from space enters).
+    r0, mu0 = point_along_ray(r, mu, start)
+    mus0 = sun_cosine_along_ray(r, mu_s, nu, start, r0)
+    # Sample points y_j along the view ray, shape (n, N).
+    s = seg.unsqueeze(-1) * x
+    r0e, mu0e, mus0e, nue = (t.unsqueeze(-1) for t in (r0, mu0, mus0, nu))
+    r_j, _ = point_along_ray(r0e, mu0e, s)
+    mus_j = sun_cosine_along_ray(r0e, mus0e, nue, s, r_j)
+    # T(x, y_j) from the integrator's view-segment column, T(y_j, sun) likewise.
+    col_view = column_fn(r0e, mu0e, s)  # (n, N, K)
+    t_sun = transmittance_to_sun(column_fn, atm, r_j, mus_j)  # (n, N, W)
+    trans = torch.exp(-col_view @ atm.extinction_matrix) * t_sun  # (n, N, W)
+    alt = (r_j - Rb).unsqueeze(-1)
+    dens = torch.exp(-alt / atm.scale_heights)  # (n, N, 2)
+    wd = dens * (w * seg.unsqueeze(-1)).unsqueeze(-1)  # quadrature weight x density
+    ray_int = torch.einsum("nj k, n j w -> n k w".replace(" ", ""), wd, trans)  # (n, 2, W)
+    p_r = rayleigh_phase(nu).unsqueeze(-1)
+    p_m = mie_phase(nu, atm.mie_g, atm.mie_phase).unsqueeze(-1)
+    radiance = ray_int[:, 0] * atm.rayleigh_scattering * p_r + ray_int[:, 1] * atm.mie_scattering * p_m
+    radiance = radiance * atm.solar_irradiance
+    if ground:
+        # Lambertian ground lit by the attenuated direct sun (its single-bounce term).
+        col_g = column_fn(r0, mu0, seg)
+        t_g = torch.exp(-col_g @ atm.extinction_matrix)
+        r_g = torch.full_like(r, Rb)
+        mus_g = sun_cosine_along_ray(r0, mus0, nu, seg, torch.clamp_min(point_along_ray(r0, mu0, seg)[0], Rb))
+        e_g = transmittance_to_sun(column_fn, atm, r_g, mus_g) * torch.clamp_min(mus_g, 0.0).unsqueeze(-1)
+        radiance = radiance + hits.unsqueeze(-1) * t_g * atm.ground_albedo / math.pi * e_g * atm.solar_irradiance
+    if sun_disk:
+        col_t = column_fn(r0, mu0, seg)
+        t_top = torch.exp(-col_t @ atm.extinction_matrix)
+        in_disk = (nu > math.cos(atm.sun_angular_radius)) & ~hits
+        disk = atm.solar_irradiance / (math.pi * atm.sun_angular_radius**2)
+        radiance = radiance + in_disk.unsqueeze(-1) * t_top * disk
+    return radiance
+
+
+def single_scattering(
+    atm: Atmosphere,
+    r: Tensor,
+    mu: Tensor,
+    mu_s: Tensor,
+    nu: Tensor,
+    integrator: OpticalDepthIntegrator,
+    view_samples: int = 32,
+    rule: str = "trapezoid",
+    ground: bool = True,
+    sun_disk: bool = False,
+    chunk_bytes: float = 64e6,
+    column_fn: ColumnFn | None = None,
+) -> Tensor:
+    """Spectral single-scattering radiance for a batch of rays.
+
+    Args:
+        atm: the atmosphere (its dtype and device are used throughout).
+        r: observer distance from the planet centre, shape (...). [m]
+        mu: cosine of the view zenith angle, shape (...). [1]
+        mu_s: cosine of the sun zenith angle at the observer, shape (...). [1]
+        nu: cosine of the angle between view and sun, shape (...). [1]
+        integrator: optical-depth method for T(x, y) and T(y, sun).
+        view_samples: N, samples of the outer integral.
+        rule: outer quadrature rule (trapezoid, midpoint, simpson, gauss).
+        ground: add the Lambertian ground lit by the direct sun for rays that hit it.
+        sun_disk: add the attenuated solar disc.
+        chunk_bytes: peak working memory per chunk of rays; bounds memory for large images.
+        column_fn: a prepared integrator (to reuse precomputation across calls).
+
+    Returns:
+        Spectral radiance, shape (..., W). [W/(m^2 sr nm)]
+    """
+    validate_rule(rule)
+    dtype, device = atm.dtype, atm.device
+    r, mu, mu_s, nu = (torch.as_tensor(t, dtype=dtype, device=device) for t in (r, mu, mu_s, nu))
+    r, mu, mu_s, nu = torch.broadcast_tensors(r, mu, mu_s, nu)
+    batch_shape = r.shape
+    r, mu, mu_s, nu = (t.reshape(-1) for t in (r, mu, mu_s, nu))
+    x, w = nodes_weights(rule, view_samples, dtype, device)
+    if column_fn is None:
+        column_fn = integrator.prepare(atm.scale_heights, atm.bottom_radius, atm.top_radius)
+    n_w = atm.wavelengths.shape[0]
+    per_ray = x.shape[0] * (6 * n_w + 24) * torch.finfo(dtype).bits // 8
+    step = max(1, int(chunk_bytes // per_ray))
+    out = [
+        _render_chunk(atm, column_fn, r[i : i + step], mu[i : i + step], mu_s[i : i + step], nu[i : i + step], x, w, ground, sun_disk)
+        for i in range(0, r.shape[0], step)
+    ]
+    res = torch.cat(out, 0) if out else torch.zeros(0, n_w, dtype=dtype, device=device)
+    return res.reshape(*batch_shape, n_w)
