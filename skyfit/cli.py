@@ -97,7 +97,10 @@ def _exr_payload(img, atm, integrator, args, sun_zenith, sun_azimuth, spectral: 
     if spectral:
         spec = img.spectral.detach().cpu().numpy()
         for k, lam in enumerate(atm.wavelengths.cpu().tolist()):
-            chans[f"L{lam:g}"] = spec[..., k]
+            name = f"L{lam:g}"
+            if name in chans:
+                raise UserError(f"wavelengths closer than the channel names resolve ({name} twice); use a coarser grid")
+            chans[name] = spec[..., k]
     meta = {
         "skyfit_version": __version__,
         "camera": img.camera.metadata(),
@@ -125,7 +128,16 @@ def _sun_from_args(args) -> tuple[float, float]:
         raise UserError("give the sun with --sun-zenith DEG [--sun-azimuth DEG]")
     if not (0.0 <= args.sun_zenith <= 180.0):
         raise UserError(f"--sun-zenith must be in [0, 180] degrees, got {args.sun_zenith}")
+    if not math.isfinite(args.sun_azimuth):
+        raise UserError(f"--sun-azimuth must be a finite angle in degrees, got {args.sun_azimuth}")
     return float(args.sun_zenith), float(args.sun_azimuth)
+
+
+def _check_render_numbers(args) -> None:
+    if not math.isfinite(args.up_azimuth):
+        raise UserError(f"--up-azimuth must be a finite angle in degrees, got {args.up_azimuth}")
+    if not (0.0 <= args.altitude < math.inf):
+        raise UserError(f"--altitude must be >= 0 m above the ground, got {args.altitude}")
 
 
 def cmd_render(args) -> int:
@@ -144,6 +156,7 @@ def cmd_render(args) -> int:
     if args.orders != 1:
         raise UserError(f"--orders {args.orders}: only single scattering (--orders 1) is implemented so far")
     sun_zenith, sun_azimuth = _sun_from_args(args)
+    _check_render_numbers(args)
     lam = parse_wavelengths(args.wavelengths)
     integrator = parse_integrator(args.integrator)
     device = _check_device(args.device)
@@ -153,6 +166,9 @@ def cmd_render(args) -> int:
         img = _render_image(args, atm, integrator, sun_zenith, sun_azimuth, args.size, args.projection)
     elapsed = time.perf_counter() - t0
     chans, meta = _exr_payload(img, atm, integrator, args, sun_zenith, sun_azimuth, args.spectral)
+    bad = sorted(k for k, v in chans.items() if not np.isfinite(v).all())
+    if bad:  # never write an image of NaN/Inf (a parameter the checks above missed, or a renderer bug)
+        raise UserError(f"render of {args.config} produced non-finite values in channel(s) {bad}; nothing written")
     write_exr(out, chans, meta)
     info = {"out": str(out), "seconds": round(elapsed, 4), "size": args.size, "channels": sorted(chans)}
     print(json.dumps(info) if args.json else f"wrote {out} ({args.size}x{args.size}, {len(chans)} channels) in {elapsed:.2f} s")
@@ -209,11 +225,18 @@ def cmd_bench(args) -> int:
 
 
 # -- entry point ---------------------------------------------------------------
+class _Parser(argparse.ArgumentParser):
+    """argparse with CONTRACT.md's error form: one line on stderr, exit status 2 (no usage block)."""
+
+    def error(self, message: str):
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .camera import PROJECTIONS
     from .quadrature import RULES
 
-    p = argparse.ArgumentParser(prog="skyfit", description="Fit a physically based atmosphere to measured skies.")
+    p = _Parser(prog="skyfit", description="Fit a physically based atmosphere to measured skies.")
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("render", help="render a fisheye sky to OpenEXR")

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -39,12 +40,25 @@ def spectral_tables() -> dict:
 
 
 def table(name: str, wavelengths_nm: np.ndarray) -> np.ndarray:
-    """Linearly interpolate a shipped spectral table at ``wavelengths_nm`` (held flat outside)."""
+    """Linearly interpolate a shipped spectral table at ``wavelengths_nm``.
+
+    Within half a sample spacing beyond either end the end value is held (a
+    sample stands for its bin); further out the table says nothing, so the
+    wavelength is refused rather than extrapolated (STYLE.md).
+    """
     tabs = spectral_tables()
-    if name not in tabs:
+    if not isinstance(name, str) or name not in tabs:
         raise ConfigError(f"unknown spectral table {name!r}; known: {sorted(tabs)}")
     t = tabs[name]
-    return np.interp(wavelengths_nm, np.asarray(t["wavelength_nm"], float), np.asarray(t["values"], float))
+    wl, val = np.asarray(t["wavelength_nm"], float), np.asarray(t["values"], float)
+    lam = np.asarray(wavelengths_nm, float)
+    lo, hi = wl[0] - (wl[1] - wl[0]) / 2, wl[-1] + (wl[-1] - wl[-2]) / 2
+    outside = lam[(lam < lo - 1e-9) | (lam > hi + 1e-9)]
+    if outside.size:
+        raise ConfigError(
+            f"spectral table {name!r} covers {lo:g}-{hi:g} nm; wavelength(s) {outside.tolist()} nm lie outside it"
+        )
+    return np.interp(lam, wl, val)
 
 
 def _get(d: dict, key: str, default: Any, section: str) -> float:
@@ -55,6 +69,37 @@ def _get(d: dict, key: str, default: Any, section: str) -> float:
         return float(v)
     except (TypeError, ValueError):
         raise ConfigError(f"{section}.{key} must be a number, got {v!r}") from None
+
+
+SECTION_KEYS: dict[str, frozenset[str]] = {
+    "planet": frozenset({"bottom_radius_m", "top_radius_m"}),
+    "rayleigh": frozenset({"coefficient", "exponent", "scale_height_m", "table", "scale"}),
+    "mie": frozenset({
+        "angstrom_alpha", "angstrom_beta", "extinction_550", "single_scattering_albedo", "scale_height_m", "g", "phase",
+    }),
+    "ozone": frozenset({"column_du", "layer_m", "cross_section"}),
+    "ground": frozenset({"albedo", "table"}),
+    "sun": frozenset({"distance_au", "bandwidth_nm", "angular_radius_rad"}),
+}
+"""Keys each config section accepts; anything else is refused (a typo would silently keep a default)."""
+
+
+def _section(cfg: dict, name: str) -> dict:
+    d = cfg.get(name)
+    if d is None:
+        return {}
+    if not isinstance(d, dict):
+        raise ConfigError(f"config section {name!r} must be a mapping of key: value, got {d!r}")
+    unknown = set(d) - SECTION_KEYS[name]
+    if unknown:
+        raise ConfigError(f"unknown key(s) {sorted(unknown)} in section {name!r}; known: {sorted(SECTION_KEYS[name])}")
+    return d
+
+
+def _nonneg(value: float, what: str) -> float:
+    if not value >= 0:
+        raise ConfigError(f"{what} must be >= 0, got {value}")
+    return value
 
 
 def load_yaml(path: str | Path) -> dict:
@@ -84,16 +129,11 @@ def atmosphere_from_config(
     """Build a validated :class:`Atmosphere` on ``wavelengths_nm`` from a config dict."""
     lam = np.atleast_1d(np.asarray(wavelengths_nm, float))
     T = functools.partial(torch.as_tensor, dtype=dtype, device=device)
-    known = {"name", "source", "description", "planet", "rayleigh", "mie", "ozone", "ground", "sun", "notes"}
+    known = {"name", "source", "description", "notes", *SECTION_KEYS}
     unknown = set(cfg) - known
     if unknown:
         raise ConfigError(f"unknown config section(s) {sorted(unknown)}; known: {sorted(known)}")
-    planet = cfg.get("planet", {}) or {}
-    ray = cfg.get("rayleigh", {}) or {}
-    mie = cfg.get("mie", {}) or {}
-    oz = cfg.get("ozone", {}) or {}
-    gnd = cfg.get("ground", {}) or {}
-    sun = cfg.get("sun", {}) or {}
+    planet, ray, mie, oz, gnd, sun = (_section(cfg, s) for s in ("planet", "rayleigh", "mie", "ozone", "ground", "sun"))
 
     bottom = _get(planet, "bottom_radius_m", C.EARTH_BOTTOM_RADIUS_M, "planet")
     top = _get(planet, "top_radius_m", C.EARTH_TOP_RADIUS_M, "planet")
@@ -102,23 +142,20 @@ def atmosphere_from_config(
     if "table" in ray:
         beta_r = table(ray["table"], lam)
     else:
-        beta_r = rayleigh_power_law(
-            lam, _get(ray, "coefficient", C.RAYLEIGH_COEFF_PER_M_UM4, "rayleigh"), _get(ray, "exponent", 4.0, "rayleigh")
-        )
-    beta_r = beta_r * _get(ray, "scale", 1.0, "rayleigh")
+        coeff = _nonneg(_get(ray, "coefficient", C.RAYLEIGH_COEFF_PER_M_UM4, "rayleigh"), "rayleigh.coefficient")
+        beta_r = rayleigh_power_law(lam, coeff, _get(ray, "exponent", 4.0, "rayleigh"))
+    beta_r = beta_r * _nonneg(_get(ray, "scale", 1.0, "rayleigh"), "rayleigh.scale")
 
     h_m = _get(mie, "scale_height_m", C.MIE_SCALE_HEIGHT_M, "mie")
-    if h_m <= 0 or h_r <= 0:
-        raise ConfigError(f"scale heights must be > 0 m, got rayleigh {h_r}, mie {h_m}")
+    for key, h in (("rayleigh.scale_height_m", h_r), ("mie.scale_height_m", h_m)):
+        if not h > 0:
+            raise ConfigError(f"{key} must be > 0 m (scale heights), got {h}")
     if "extinction_550" in mie:
-        ext_m = _get(mie, "extinction_550", None, "mie") * (lam / 550.0) ** (-_get(mie, "angstrom_alpha", 0.0, "mie"))
+        ext_550 = _nonneg(_get(mie, "extinction_550", None, "mie"), "mie.extinction_550")
+        ext_m = ext_550 * (lam / 550.0) ** (-_get(mie, "angstrom_alpha", 0.0, "mie"))
     else:
-        ext_m = angstrom_extinction(
-            lam,
-            _get(mie, "angstrom_beta", C.MIE_EXTINCTION_PER_M * C.MIE_SCALE_HEIGHT_M, "mie"),
-            _get(mie, "angstrom_alpha", 0.0, "mie"),
-            h_m,
-        )
+        beta = _get(mie, "angstrom_beta", C.MIE_EXTINCTION_PER_M * C.MIE_SCALE_HEIGHT_M, "mie")
+        ext_m = angstrom_extinction(lam, _nonneg(beta, "mie.angstrom_beta"), _get(mie, "angstrom_alpha", 0.0, "mie"), h_m)
     ssa = _get(mie, "single_scattering_albedo", C.MIE_SINGLE_SCATTERING_ALBEDO, "mie")
     if not 0 <= ssa <= 1:
         raise ConfigError(f"mie.single_scattering_albedo must be in [0, 1], got {ssa}")
@@ -130,14 +167,28 @@ def atmosphere_from_config(
         albedo = np.full_like(lam, _get(gnd, "albedo", C.GROUND_ALBEDO, "ground"))
 
     dist = _get(sun, "distance_au", 1.0, "sun")
-    if dist <= 0:
+    if not 0 < dist < math.inf:
         raise ConfigError(f"sun.distance_au must be > 0, got {dist}")
-    e_sun = solar_irradiance(lam, sun.get("bandwidth_nm")) / dist**2
+    bandwidth = None
+    if sun.get("bandwidth_nm") is not None:
+        bandwidth = _get(sun, "bandwidth_nm", None, "sun")
+        if not 0 < bandwidth < math.inf:
+            raise ConfigError(f"sun.bandwidth_nm must be > 0 nm, got {bandwidth}")
+    try:
+        e_sun = solar_irradiance(lam, bandwidth) / dist**2
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
 
     ozone_abs = None
-    layer = tuple(float(x) for x in oz.get("layer_m", (10_000.0, 25_000.0, 40_000.0)))
+    layer_raw = oz.get("layer_m", (10_000.0, 25_000.0, 40_000.0))
+    try:
+        layer = tuple(float(x) for x in layer_raw)
+        if len(layer) != 3:
+            raise ValueError
+    except (TypeError, ValueError):
+        raise ConfigError(f"ozone.layer_m must be three altitudes [bottom, peak, top] in m, got {layer_raw!r}") from None
     if oz:
-        du = _get(oz, "column_du", 300.0, "ozone")
+        du = _nonneg(_get(oz, "column_du", 300.0, "ozone"), "ozone.column_du")
         lo, peak, hi = layer
         # Tent profile of unit peak density integrates to (hi - lo) / 2 metres, so
         # peak number density = column / that (Bruneton 2017, kMaxOzoneNumberDensity).
@@ -174,4 +225,8 @@ def load_atmosphere(path_or_name: str | Path, wavelengths_nm, dtype=torch.float6
         shipped = Path(__file__).resolve().parents[1] / "configs" / f"{path_or_name}.yaml"
         if shipped.is_file():
             p = shipped
-    return atmosphere_from_config(load_yaml(p), wavelengths_nm, dtype, device)
+    cfg = load_yaml(p)
+    try:
+        return atmosphere_from_config(cfg, wavelengths_nm, dtype, device)
+    except ConfigError as e:  # name the file (CONTRACT.md: the message names the problem and the file)
+        raise ConfigError(f"config {p}: {e}") from None

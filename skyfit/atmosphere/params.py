@@ -62,17 +62,27 @@ class Atmosphere:
     # -- checks -----------------------------------------------------------
     def validate(self) -> None:
         """Raise ValueError naming the first out-of-range parameter."""
-        if not (self.bottom_radius > 0):
+        if not (0 < self.bottom_radius < math.inf):
             raise ValueError(f"bottom_radius must be > 0 m, got {self.bottom_radius}")
-        if not (self.top_radius > self.bottom_radius):
+        if not (self.bottom_radius < self.top_radius < math.inf):
             raise ValueError(
                 f"top_radius ({self.top_radius} m) must be greater than bottom_radius ({self.bottom_radius} m)"
             )
+        required = (
+            "wavelengths", "rayleigh_scattering", "rayleigh_scale_height", "mie_scattering", "mie_extinction",
+            "mie_scale_height", "mie_g", "ground_albedo", "solar_irradiance",
+        )
+        for name in required + (("ozone_absorption",) if self.ozone_absorption is not None else ()):
+            if not isinstance(getattr(self, name), Tensor):
+                raise ValueError(f"{name} must be a torch.Tensor, got {type(getattr(self, name)).__name__}")
         w = self.wavelengths.shape
         if self.wavelengths.ndim != 1 or w[0] < 1:
             raise ValueError("wavelengths must be a 1-D tensor with at least one entry [nm]")
-        if bool((self.wavelengths <= 0).any()):
-            raise ValueError("wavelengths must be positive [nm]")
+        if not bool(torch.isfinite(self.wavelengths).all()) or bool((self.wavelengths <= 0).any()):
+            raise ValueError("wavelengths must be finite and positive [nm]")
+        for name in ("rayleigh_scale_height", "mie_scale_height", "mie_g"):
+            if getattr(self, name).numel() != 1:
+                raise ValueError(f"{name} must be a scalar tensor (shape ()), got shape {tuple(getattr(self, name).shape)}")
         for name in ("rayleigh_scattering", "mie_scattering", "mie_extinction", "ground_albedo", "solar_irradiance"):
             t = getattr(self, name)
             if t.shape != w:

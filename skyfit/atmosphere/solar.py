@@ -5,6 +5,8 @@ import functools
 
 import numpy as np
 
+_trapezoid = getattr(np, "trapezoid", None) or np.trapz  # numpy < 2 (pyproject admits 1.26) lacks trapezoid
+
 
 @functools.lru_cache(maxsize=1)
 def _astm_g173_etr() -> tuple[np.ndarray, np.ndarray]:
@@ -33,10 +35,18 @@ def solar_irradiance(wavelengths_nm, bandwidth_nm: float | None = None) -> np.nd
     lam = np.atleast_1d(np.asarray(wavelengths_nm, float))
     if bandwidth_nm is None:
         bandwidth_nm = float(np.median(np.diff(np.sort(lam)))) if lam.size > 1 else 10.0
+    if not bandwidth_nm > 0:
+        raise ValueError(f"solar band width must be > 0 nm, got {bandwidth_nm}")
     wl, val = _astm_g173_etr()
+    outside = lam[(lam - bandwidth_nm / 2 < wl[0]) | (lam + bandwidth_nm / 2 > wl[-1])]
+    if outside.size:
+        raise ValueError(
+            f"ASTM G-173 covers {wl[0]:g}-{wl[-1]:g} nm; the {bandwidth_nm:g} nm band(s) at {outside.tolist()} nm reach outside it"
+        )
     out = np.empty_like(lam)
     for i, centre in enumerate(lam):
         lo, hi = centre - bandwidth_nm / 2, centre + bandwidth_nm / 2
-        grid = np.linspace(lo, hi, max(int(np.ceil((hi - lo) / 0.25)) + 1, 3))
-        out[i] = np.trapezoid(np.interp(grid, wl, val), grid) / (hi - lo) if hi > lo else np.interp(centre, wl, val)
+        # The table's own nodes plus the box ends: exact for the piecewise-linear table.
+        grid = np.concatenate(([lo], wl[(wl > lo) & (wl < hi)], [hi]))
+        out[i] = _trapezoid(np.interp(grid, wl, val), grid) / (hi - lo)
     return out

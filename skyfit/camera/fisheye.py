@@ -84,8 +84,20 @@ class FisheyeCamera:
         validate_projection(self.projection)
         if self.size < 1:
             raise ValueError(f"image size must be >= 1, got {self.size}")
-        if self.radius is not None and self.radius <= 0:
+        if self.radius is not None and not 0 < self.radius < math.inf:
             raise ValueError(f"fisheye radius must be > 0 px, got {self.radius}")
+        for name in ("cx", "cy", "up_azimuth_deg"):
+            v = getattr(self, name)
+            if v is not None and not math.isfinite(v):
+                raise ValueError(f"fisheye {name} must be finite, got {v}")
+        # Beyond these the projection is not one-to-one (orthographic folds back at 90°,
+        # stereographic reaches infinity at 180°, equisolid's rho peaks at 180°).
+        if self.projection == "orthographic":
+            ok, span = 0 < self.max_zenith_deg <= 90, "(0, 90]"
+        else:
+            ok, span = 0 < self.max_zenith_deg < 180, "(0, 180)"
+        if not ok:
+            raise ValueError(f"max_zenith_deg must be in {span} for the {self.projection} projection, got {self.max_zenith_deg}")
 
     @property
     def centre(self) -> tuple[float, float]:

@@ -32,7 +32,10 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray], metadata: dict 
         raise ExrError(f"all EXR channels must share one 2-D shape, got {shapes}")
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     if metadata is not None:
-        header[METADATA_KEY] = json.dumps(metadata, sort_keys=True)
+        try:
+            header[METADATA_KEY] = json.dumps(metadata, sort_keys=True)
+        except (TypeError, ValueError) as e:
+            raise ExrError(f"EXR metadata for {path} is not JSON-serialisable: {e}") from None
     data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.exr", dir=path.parent)
@@ -40,6 +43,10 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray], metadata: dict 
     try:
         OpenEXR.File(header, data).write(tmp)
         os.replace(tmp, path)
+    except OSError as e:
+        raise ExrError(f"cannot write EXR {path}: {e.strerror or e}") from None
+    except Exception as e:  # the binding raises plain exceptions (RuntimeError, ValueError)
+        raise ExrError(f"cannot write EXR {path}: {e}") from None
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -58,14 +65,17 @@ def read_exr(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
     if magic != b"\x76\x2f\x31\x01":
         raise ExrError(f"not an OpenEXR file: {path}")
     try:
-        exr = OpenEXR.File(str(path))
+        try:
+            exr = OpenEXR.File(str(path), separate_channels=True)
+        except TypeError:  # a binding without separate_channels: split its groups below
+            exr = OpenEXR.File(str(path))
         chans = {}
         for name, c in exr.channels().items():
-            px = np.asarray(c.pixels)
-            if px.ndim == 3:  # the binding groups R, G, B (and A) into one channel
-                letters = "RGBA" if name in ("RGB", "RGBA") else None
+            px = np.asarray(c.pixels, dtype=np.float32)  # half and uint channels too
+            if px.ndim == 3:  # the binding groups R, G, B (and A) of a layer into one channel
+                prefix = "" if name in ("RGB", "RGBA") else f"{name}."
                 for k in range(px.shape[-1]):
-                    chans[letters[k] if letters else f"{name}.{k}"] = px[..., k]
+                    chans[prefix + "RGBA"[k]] = px[..., k]
             else:
                 chans[name] = px
         raw = exr.header().get(METADATA_KEY)
@@ -73,6 +83,8 @@ def read_exr(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
         raise ExrError(f"cannot read EXR {path}: {e}") from None
     try:
         meta = json.loads(raw) if raw else {}
-    except json.JSONDecodeError:
+    except (TypeError, json.JSONDecodeError):
         raise ExrError(f"EXR {path}: metadata header {METADATA_KEY!r} is not valid JSON") from None
+    if not isinstance(meta, dict):
+        raise ExrError(f"EXR {path}: metadata header {METADATA_KEY!r} must hold a JSON object")
     return chans, meta

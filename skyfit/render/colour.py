@@ -62,9 +62,15 @@ def spectral_to_xyz(radiance: Tensor, wavelengths_nm: Tensor) -> Tensor:
 
 @functools.lru_cache(maxsize=1)
 def _srgb_matrix() -> np.ndarray:
+    """XYZ -> linear sRGB, derived from the sRGB primaries and D65 (IEC 61966-2-1).
+
+    colour's ``matrix_XYZ_to_RGB`` is the standard's 4-digit rounding, which maps
+    D65 white to R, G, B unequal by 1.6e-4; the derived matrix keeps neutrals neutral.
+    """
     import colour
 
-    return np.asarray(colour.models.RGB_COLOURSPACE_sRGB.matrix_XYZ_to_RGB, float)
+    cs = colour.models.RGB_COLOURSPACE_sRGB
+    return np.linalg.inv(colour.normalised_primary_matrix(cs.primaries, cs.whitepoint))
 
 
 def xyz_to_linear_srgb(xyz: Tensor) -> Tensor:
