@@ -161,10 +161,12 @@ def _box_mean_on_nodes(wl, val, lo, hi):
 
 
 def test_solar_band_averages_vs_direct_trapezoid():
-    lam = np.arange(400.0, 701.0, 20.0)  # boxes [390, 410], ... on the table's 1 nm nodes
+    lam = np.arange(400.0, 701.0, 20.0)  # default box: the spacing capped at 10 nm -> [395, 405], ...
     wl, val = _etr_colour()
-    want = [_box_mean_on_nodes(wl, val, c - 10, c + 10) for c in lam]
+    want = [_box_mean_on_nodes(wl, val, c - 5, c + 5) for c in lam]
     _close(solar_irradiance(lam), want, rtol=1e-12)
+    want20 = [_box_mean_on_nodes(wl, val, c - 10, c + 10) for c in lam]
+    _close(solar_irradiance(lam, 20.0), want20, rtol=1e-12)
     # boxes off the nodes: adaptive quadrature of the linearly interpolated table
     from scipy.integrate import quad
 

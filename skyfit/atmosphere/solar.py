@@ -22,7 +22,7 @@ def solar_irradiance(wavelengths_nm, bandwidth_nm: float | None = None) -> np.nd
 
     Point samples of a 1 nm solar table carry Fraunhofer-line structure; each
     value is therefore the mean of the table over a box of width
-    ``bandwidth_nm`` centred on the wavelength (default: the grid spacing,
+    ``bandwidth_nm`` centred on the wavelength (default: the grid spacing, at most 10 nm;
     10 nm for a single wavelength).
 
     Args:
@@ -34,7 +34,9 @@ def solar_irradiance(wavelengths_nm, bandwidth_nm: float | None = None) -> np.nd
     """
     lam = np.atleast_1d(np.asarray(wavelengths_nm, float))
     if bandwidth_nm is None:
-        bandwidth_nm = float(np.median(np.diff(np.sort(lam)))) if lam.size > 1 else 10.0
+        # At most 10 nm: enough to smooth the Fraunhofer lines (data README), and a
+        # sparse list such as 440,550,680 must not average the sun over 120 nm.
+        bandwidth_nm = min(float(np.median(np.diff(np.sort(lam)))), 10.0) if lam.size > 1 else 10.0
     if not bandwidth_nm > 0:
         raise ValueError(f"solar band width must be > 0 nm, got {bandwidth_nm}")
     wl, val = _astm_g173_etr()
