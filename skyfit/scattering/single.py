@@ -21,6 +21,13 @@ from ..quadrature import nodes_weights, validate_rule
 from ..transmittance import ColumnFn, OpticalDepthIntegrator
 from .phase import mie_phase, rayleigh_phase
 
+CHUNK_BYTES_CPU: float = 64e6
+"""Default working memory per chunk of rays on the CPU [bytes]: large enough that the
+per-operation overhead is small, small enough to bound memory (docs/benchmarks.md)."""
+CHUNK_BYTES_ACCELERATOR: float = 1e9
+"""Default on other devices [bytes]: a 256 x 256 sky in one chunk, since there the cost is
+one kernel launch per operation and chunk."""
+
 
 def sun_visible_fraction(r: Tensor, mu_s: Tensor, bottom_radius: float, sun_angular_radius: float) -> Tensor:
     """Fraction of the solar disc above the planet's horizon seen from radius r (Bruneton 2017). [1]
@@ -55,14 +62,14 @@ def _render_chunk(atm, column_fn, r, mu, mu_s, nu, x, w, ground, sun_disk):
     r0e, mu0e, mus0e, nue = (t.unsqueeze(-1) for t in (r0, mu0, mus0, nu))
     r_j, _ = point_along_ray(r0e, mu0e, s)
     mus_j = sun_cosine_along_ray(r0e, mus0e, nue, s, r_j)
-    # T(x, y_j) from the integrator's view-segment column, T(y_j, sun) likewise.
-    col_view = column_fn(r0e, mu0e, s)  # (n, N, K)
-    t_sun = transmittance_to_sun(column_fn, atm, r_j, mus_j)  # (n, N, W)
-    trans = torch.exp(-col_view @ atm.extinction_matrix) * t_sun  # (n, N, W)
-    alt = (r_j - Rb).unsqueeze(-1)
-    dens = torch.exp(-alt / atm.scale_heights)  # (n, N, 2)
-    wd = dens * (w * seg.unsqueeze(-1)).unsqueeze(-1)  # quadrature weight x density
-    ray_int = torch.einsum("nj k, n j w -> n k w".replace(" ", ""), wd, trans)  # (n, 2, W)
+    # T(x, y_j) T(y_j, sun) = exp(-(column(x, y_j) + column(y_j, sun)) @ extinction): one
+    # matmul and one exp over wavelengths; the sun's visible fraction goes into the weights.
+    col = column_fn(r0e, mu0e, s) + column_fn(r_j, mus_j, distance_to_top(r_j, mus_j, Rt))  # (n, N, K)
+    trans = torch.matmul(col, -atm.extinction_matrix).exp_()  # (n, N, W)
+    vis = sun_visible_fraction(r_j, mus_j, Rb, atm.sun_angular_radius)  # (n, N)
+    dens = torch.exp((r_j - Rb).unsqueeze(-1) * -(1.0 / atm.scale_heights))  # (n, N, 2)
+    wd = dens * (vis * (w * seg.unsqueeze(-1))).unsqueeze(-1)  # quadrature weight x density x sun fraction
+    ray_int = torch.bmm(wd.transpose(1, 2), trans)  # (n, 2, W)
     p_r = rayleigh_phase(nu).unsqueeze(-1)
     p_m = mie_phase(nu, atm.mie_g, atm.mie_phase).unsqueeze(-1)
     radiance = ray_int[:, 0] * atm.rayleigh_scattering * p_r + ray_int[:, 1] * atm.mie_scattering * p_m
@@ -95,7 +102,7 @@ def single_scattering(
     rule: str = "trapezoid",
     ground: bool = True,
     sun_disk: bool = False,
-    chunk_bytes: float = 64e6,
+    chunk_bytes: float | None = None,
     column_fn: ColumnFn | None = None,
 ) -> Tensor:
     """Spectral single-scattering radiance for a batch of rays.
@@ -111,7 +118,8 @@ def single_scattering(
         rule: outer quadrature rule (trapezoid, midpoint, simpson, gauss).
         ground: add the Lambertian ground lit by the direct sun for rays that hit it.
         sun_disk: add the attenuated solar disc.
-        chunk_bytes: peak working memory per chunk of rays; bounds memory for large images.
+        chunk_bytes: working memory per chunk of rays, bounding memory for large images
+            (default CHUNK_BYTES_CPU on the CPU, CHUNK_BYTES_ACCELERATOR elsewhere). [bytes]
         column_fn: a prepared integrator (to reuse precomputation across calls).
 
     Returns:
@@ -128,6 +136,8 @@ def single_scattering(
         column_fn = integrator.prepare(atm.scale_heights, atm.bottom_radius, atm.top_radius)
     n_w = atm.wavelengths.shape[0]
     per_ray = x.shape[0] * (6 * n_w + 24) * torch.finfo(dtype).bits // 8
+    if chunk_bytes is None:
+        chunk_bytes = CHUNK_BYTES_CPU if torch.device(device).type == "cpu" else CHUNK_BYTES_ACCELERATOR
     step = max(1, int(chunk_bytes // per_ray))
     out = [
         _render_chunk(atm, column_fn, r[i : i + step], mu[i : i + step], mu_s[i : i + step], nu[i : i + step], x, w, ground, sun_disk)
