@@ -78,11 +78,45 @@ def _check_device(device: str) -> str:
 
 
 # -- commands ------------------------------------------------------------------
-def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projection):
+def _floats(text: str | None, n: int, flag: str) -> list[float] | None:
+    """``A,B,...`` -> n finite floats (None passes through)."""
+    if text is None:
+        return None
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != n or not all(math.isfinite(v) for v in vals):
+        raise UserError(f"{flag} takes {n} comma-separated finite numbers, got {text!r}")
+    return vals
+
+
+def _camera_from_args(args, size, projection):
+    """The render command's camera options -> FisheyeCamera (docs/camera.md); absent options take defaults."""
     from .camera import FisheyeCamera
+
+    get = lambda name: getattr(args, name, None)  # noqa: E731  (demo passes a Namespace without them)
+    kb = _floats(get("kb_coeffs"), 4, "--kb-coeffs")
+    if kb is not None and projection != "kannala_brandt":
+        raise UserError(f"--kb-coeffs needs --projection kannala_brandt, got --projection {projection}")
+    centre = _floats(get("center"), 2, "--center") or [None, None]
+    tilt = _floats(get("tilt"), 2, "--tilt") or [0.0, 0.0]
+    if not 0.0 <= tilt[0] < 90.0:
+        raise UserError(f"--tilt ZENITH,AZIMUTH: the optical axis's zenith angle must be in [0, 90) degrees, got {tilt[0]}")
+    if get("focal") is not None and get("radius") is not None:
+        raise UserError("give --focal or --radius, not both")
+    b = math.radians(tilt[1])
+    return FisheyeCamera(
+        size, projection=projection, cx=centre[0], cy=centre[1], radius=get("radius"), focal=get("focal"), kb_coeffs=kb,
+        up_azimuth_deg=get("up_azimuth") or 0.0, tilt_deg=(tilt[0] * math.sin(b), tilt[0] * math.cos(b)),
+        max_zenith_deg=90.0 if get("max_zenith") is None else get("max_zenith"),
+    )
+
+
+def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projection):
     from .render import render_fisheye
 
-    cam = FisheyeCamera(size, projection=projection, up_azimuth_deg=getattr(args, "up_azimuth", 0.0))
+    cam = _camera_from_args(args, size, projection)
     return render_fisheye(
         atm, cam, sun_zenith, sun_azimuth, integrator, altitude=args.altitude, view_samples=args.view_samples,
         rule=args.rule, orders=args.orders, sun_disk=args.sun_disk,
@@ -243,8 +277,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("config", help="atmosphere config YAML (or a shipped name: earth, earth_clear_sky_eval, earth_hazy, mars)")
     r.add_argument("--out", required=True, help="output .exr file")
     r.add_argument("--size", type=int, default=256, help="image size in pixels (default 256)")
-    r.add_argument("--projection", choices=PROJECTIONS, default="equidistant")
+    r.add_argument("--projection", choices=PROJECTIONS, default="equidistant", help="fisheye model (docs/camera.md)")
+    r.add_argument("--kb-coeffs", metavar="K1,K2,K3,K4", help="kannala_brandt: r = f (t + k1 t^3 + k2 t^5 + k3 t^7 + k4 t^9)")
+    r.add_argument("--focal", type=float, help="focal length, dr/dtheta at the centre [px/rad]")
+    r.add_argument("--radius", type=float, help="radius of the 90 deg circle [px] (default size/2)")
+    r.add_argument("--center", metavar="CX,CY", help="image position of the optical axis [px] (default the middle)")
     r.add_argument("--up-azimuth", type=float, default=0.0, help="azimuth of the image's up direction [deg]")
+    r.add_argument("--tilt", metavar="DEG,DEG", help="optical axis's zenith angle and the azimuth it leans toward [deg]")
+    r.add_argument("--max-zenith", type=float, help="field of view: largest angle from the optical axis [deg] (default 90)")
     r.add_argument("--sun-zenith", type=float, help="sun zenith angle [deg]")
     r.add_argument("--sun-azimuth", type=float, default=180.0, help="sun azimuth, clockwise from North [deg]")
     r.add_argument("--time", help="ISO 8601 timestamp (needs the sun-position module)")
