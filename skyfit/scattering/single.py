@@ -19,6 +19,7 @@ from ..atmosphere import Atmosphere
 from ..geometry import atmosphere_segment, distance_to_top, point_along_ray, safe_sqrt, sun_cosine_along_ray
 from ..quadrature import nodes_weights, validate_rule
 from ..transmittance import ColumnFn, OpticalDepthIntegrator
+from ..transmittance.quadrature import QuadratureOpticalDepth
 from .phase import mie_phase, rayleigh_phase
 
 CHUNK_BYTES_CPU: float = 64e6
@@ -135,7 +136,10 @@ def single_scattering(
     if column_fn is None:
         column_fn = integrator.prepare(atm.scale_heights, atm.bottom_radius, atm.top_radius)
     n_w = atm.wavelengths.shape[0]
-    per_ray = x.shape[0] * (6 * n_w + 24) * torch.finfo(dtype).bits // 8
+    # Working set per sample point: ~6 (W,)-vectors and ~24 scalars, plus a quadrature
+    # integrator's (M, K) density grids for its M inner samples.
+    inner = 8 * integrator.samples * atm.scale_heights.shape[0] if isinstance(integrator, QuadratureOpticalDepth) else 0
+    per_ray = x.shape[0] * (6 * n_w + 24 + inner) * torch.finfo(dtype).bits // 8
     if chunk_bytes is None:
         chunk_bytes = CHUNK_BYTES_CPU if torch.device(device).type == "cpu" else CHUNK_BYTES_ACCELERATOR
     step = max(1, int(chunk_bytes // per_ray))
