@@ -15,14 +15,13 @@ quadratic form, every optical depth by adaptive ``scipy.integrate.quad``
 integral by adaptive ``scipy.integrate.quad_vec`` over the wavelengths, with
 break points where the sun-visibility smoothstep has its kinks.
 
-T_sun(y) is the transmittance along the straight line from y to the top
-sphere times the visible fraction of the solar disc, Bruneton 2017's
-GetTransmittanceToSun ``smoothstep(-sin_h a, sin_h a, mu_s - cos_h)``, with
-sin_h = R / |y| and cos_h = -sqrt(1 - sin_h^2); it is reimplemented here in
-plain Python. Inside its band (the sun within its angular radius of the
-horizon) the line dips below the ground; like skyfit (and unlike Bruneton's
-LUT, which clamps to the horizon) the reference integrates the density along
-that line as it is.
+T_sun(y) is the visible fraction of the solar disc, Bruneton 2017's
+GetTransmittanceToSun ``smoothstep(-sin_h a, sin_h a, mu_s - cos_h)`` with
+sin_h = R / |y| and cos_h = -sqrt(1 - sin_h^2), times the transmittance to
+the top along the sun's direction; inside the band, where the sun's centre is
+below the horizon but part of its disc is seen, along the horizon ray
+(zenith cosine max(mu_s, cos_h)), as Bruneton's table clamped at the horizon
+does. Both are reimplemented here in plain Python.
 
 The convergence of the reference is shown by quad's own error estimates
 (asserted below) and by the agreement, to ~1e-13, of a fully independent
@@ -126,8 +125,11 @@ class Reference:
         vis = visible_fraction(r, mu_s, self.R, self.alpha)
         if vis == 0.0:
             return np.zeros_like(self.E)
-        to_top = sphere_roots(r * r, r * mu_s, self.Rt)[1]
-        return self.transmittance(y, s, to_top) * vis
+        # Below the horizon (inside the band) the light arrives along the horizon ray.
+        mu_c = max(mu_s, -math.sqrt(max(1.0 - (self.R / r) ** 2, 0.0)))
+        d = np.array([math.sqrt(max(1.0 - mu_c * mu_c, 0.0)), 0.0, mu_c])  # columns depend on (r, mu) only
+        to_top = sphere_roots(r * r, r * mu_c, self.Rt)[1]
+        return self.transmittance(np.array([0.0, 0.0, r]), d, to_top) * vis
 
     def radiance(self, r: float, v: np.ndarray, s: np.ndarray, ground: bool = True) -> np.ndarray:
         """Radiance (W,) seen from (0, 0, r) in direction v with the sun in direction s."""
@@ -161,7 +163,7 @@ class Reference:
     def _inscatter(self, pa, v, s, length, p_r, p_m):
         R = self.R
 
-        def band(t):  # smoothstep argument at distance t; kinks where it crosses 0 and 1
+        def band(t):  # smoothstep argument at distance t; kinks where it crosses 0, 1/2 and 1
             y = pa + t * v
             rr = math.sqrt(float(y @ y))
             sin_h = min(R / rr, 1.0)
@@ -171,7 +173,7 @@ class Reference:
         ts = np.linspace(0.0, length, 2001)
         xs = np.array([band(t) for t in ts])
         pts = []
-        for lvl in (0.0, 1.0):
+        for lvl in (0.0, 0.5, 1.0):  # smoothstep ends; horizon (sun column clamped at cos_h)
             sg = np.sign(xs - lvl)
             for i in np.nonzero(sg[:-1] * sg[1:] < 0)[0]:
                 pts.append(optimize.brentq(lambda t: band(t) - lvl, ts[i], ts[i + 1], xtol=1e-7))

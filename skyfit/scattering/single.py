@@ -43,10 +43,25 @@ def sun_visible_fraction(r: Tensor, mu_s: Tensor, bottom_radius: float, sun_angu
     return x * x * (3.0 - 2.0 * x)
 
 
+def sun_ray_cosine(r: Tensor, mu_s: Tensor, bottom_radius: float) -> Tensor:
+    """Zenith cosine of the ray whose column attenuates the sun: mu_s, raised to the horizon's cos_h. [1]
+
+    Inside the smoothstep band of :func:`sun_visible_fraction` the sun's centre may
+    be below the horizon while part of its disc is still seen, along rays at or
+    above the horizon. Their transmittance is taken as that of the horizon ray, as
+    Bruneton 2017's table does (it is clamped to mu >= cos_h). A line through the
+    planet instead has a density exp(depth / H) that overflows for small H (e.g.
+    e^9600 for H = 10 m, sun 10° below the horizon), and inf * 0 gives NaN values
+    (beta = 0) and NaN gradients where the sun is hidden (vis = 0).
+    """
+    sin_h = torch.clamp(bottom_radius / r, max=1.0)
+    return torch.maximum(mu_s, -safe_sqrt(1.0 - sin_h * sin_h))
+
+
 def transmittance_to_sun(column_fn: ColumnFn, atm: Atmosphere, r: Tensor, mu_s: Tensor) -> Tensor:
     """Transmittance from radius r to the sun, times its visible fraction, shape (..., W). [1]"""
-    length = distance_to_top(r, mu_s, atm.top_radius)
-    col = column_fn(r, mu_s, length)  # (..., K)
+    mu_c = sun_ray_cosine(r, mu_s, atm.bottom_radius)
+    col = column_fn(r, mu_c, distance_to_top(r, mu_c, atm.top_radius))  # (..., K)
     vis = sun_visible_fraction(r, mu_s, atm.bottom_radius, atm.sun_angular_radius)
     return torch.exp(-col @ atm.extinction_matrix) * vis.unsqueeze(-1)
 
@@ -57,6 +72,9 @@ def _render_chunk(atm, column_fn, r, mu, mu_s, nu, x, w, ground, sun_disk):
     seg = end - start
     # Start of the segment (the observer, or where a ray from space enters).
     r0, mu0 = point_along_ray(r, mu, start)
+    # A ray from space that misses the atmosphere has seg = 0 and r0 = r > top; keep the
+    # (zero-length) segments the integrators see inside the atmosphere, which tables require.
+    r0 = torch.clamp_max(r0, Rt)
     mus0 = sun_cosine_along_ray(r, mu_s, nu, start, r0)
     # Sample points y_j along the view ray, shape (n, N).
     s = seg.unsqueeze(-1) * x
@@ -65,7 +83,8 @@ def _render_chunk(atm, column_fn, r, mu, mu_s, nu, x, w, ground, sun_disk):
     mus_j = sun_cosine_along_ray(r0e, mus0e, nue, s, r_j)
     # T(x, y_j) T(y_j, sun) = exp(-(column(x, y_j) + column(y_j, sun)) @ extinction): one
     # matmul and one exp over wavelengths; the sun's visible fraction goes into the weights.
-    col = column_fn(r0e, mu0e, s) + column_fn(r_j, mus_j, distance_to_top(r_j, mus_j, Rt))  # (n, N, K)
+    mus_c = sun_ray_cosine(r_j, mus_j, Rb)
+    col = column_fn(r0e, mu0e, s) + column_fn(r_j, mus_c, distance_to_top(r_j, mus_c, Rt))  # (n, N, K)
     trans = torch.matmul(col, -atm.extinction_matrix).exp_()  # (n, N, W)
     vis = sun_visible_fraction(r_j, mus_j, Rb, atm.sun_angular_radius)  # (n, N)
     dens = torch.exp((r_j - Rb).unsqueeze(-1) * -(1.0 / atm.scale_heights))  # (n, N, 2)
