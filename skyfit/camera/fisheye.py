@@ -115,6 +115,11 @@ def _safe_norm2(a: Tensor, b: Tensor) -> Tensor:
     return torch.where(pos, torch.sqrt(torch.where(pos, s, torch.ones_like(s))), torch.zeros_like(s))
 
 
+def _fill_nan(v: Tensor, keep: Tensor) -> Tensor:
+    """v (..., 3) where keep (...), NaN elsewhere; the NaN is a constant, so gradients stay finite."""
+    return torch.where(keep[..., None], v, torch.full_like(v, math.nan))
+
+
 def _sinc(theta: Tensor) -> Tensor:
     """sin(theta) / theta, 1 at 0 (torch.sinc is the normalised sin(pi x)/(pi x))."""
     return torch.sinc(theta / math.pi)
@@ -331,6 +336,12 @@ class FisheyeCamera:
         Returns:
             (d, inside): d shape (..., 3) [1], NaN where not ``inside`` (beyond max_zenith_deg); inside (...) bool.
         """
+        d, inside = self._unproject(x, y)
+        return _fill_nan(d, inside), inside
+
+    def _unproject(self, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+        """As :meth:`pixel_to_camera` but finite everywhere (the optical axis where not inside), so that
+        later operations mixing all entries (a rotation's matmul backward) stay NaN-free."""
         x, y = torch.broadcast_tensors(torch.as_tensor(x), torch.as_tensor(y))
         if not x.is_floating_point():
             x, y = x.to(torch.float64), y.to(torch.float64)
@@ -362,8 +373,7 @@ class FisheyeCamera:
             k = self.kb_coeffs.to(dtype=dtype, device=device)
             theta = kb_theta(_safe_norm2(u, w) / s, k, math.radians(self.max_zenith_deg))
             sr, cos_t = _sinc(theta) / (s * kb_ratio(theta, k)), torch.cos(theta)
-        d = torch.stack([u * sr, w * sr, cos_t], -1)
-        return torch.where(inside[..., None], d, torch.full_like(d, math.nan)), inside
+        return torch.stack([u * sr, w * sr, cos_t], -1), inside
 
     def camera_to_pixel(self, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Image coordinates of rays given in the camera frame (any non-zero length).
@@ -410,8 +420,8 @@ class FisheyeCamera:
             shape (..., 3). [1] NaN beyond the field of view (see :meth:`pixel_valid`); the gradient is
             finite everywhere else, the centre included.
         """
-        d, _ = self.pixel_to_camera(x, y)
-        return d @ self.rotation(d.dtype, d.device).transpose(-1, -2)
+        d, inside = self._unproject(x, y)
+        return _fill_nan(d @ self.rotation(d.dtype, d.device).transpose(-1, -2), inside)
 
     def direction_to_pixel(self, v: Tensor) -> tuple[Tensor, Tensor]:
         """Image coordinates (x, y) [px] of world directions ``v`` (ENU, shape (..., 3), any non-zero length).
@@ -443,8 +453,8 @@ class FisheyeCamera:
     def pixel_vectors(self, dtype=torch.float64, device="cpu") -> tuple[Tensor, Tensor]:
         """ENU unit vectors of every pixel centre (NaN where invalid), shape (H, W, 3), and the valid mask (H, W)."""
         x, y = self.pixel_grid(dtype, device)
-        d, inside = self.pixel_to_camera(x, y)
-        return d @ self.rotation(dtype, device).transpose(-1, -2), inside
+        d, inside = self._unproject(x, y)
+        return _fill_nan(d @ self.rotation(dtype, device).transpose(-1, -2), inside), inside
 
     def pixel_directions(self, dtype=torch.float64, device="cpu") -> tuple[Tensor, Tensor, Tensor]:
         """Zenith and azimuth of every pixel centre, and the valid mask.
@@ -553,8 +563,9 @@ def reproject(image: Tensor, src: FisheyeCamera, dst: FisheyeCamera, mode: str =
 
     Returns:
         (out, valid): out shape (C or B,C, dst.height, dst.width), 0 where not valid; valid (H', W') bool:
-        inside dst's field of view, seen by src, and inside src's pixel-centre grid. Within about a
-        pixel of src's field-of-view edge the samples blend in whatever src holds outside it.
+        inside dst's field of view, seen by src, and inside src's image (within half a pixel of the
+        image's edge the edge pixels are repeated, ``padding_mode='border'``). Within about a pixel of
+        src's field-of-view edge the samples blend in whatever src holds outside it.
     """
     from kornia.geometry.transform import remap
 
@@ -567,10 +578,10 @@ def reproject(image: Tensor, src: FisheyeCamera, dst: FisheyeCamera, mode: str =
     xs, ys = src.direction_to_pixel(torch.where(valid[..., None], v, up))
     with torch.no_grad():
         ok = valid & torch.isfinite(xs) & torch.isfinite(ys)
-        ok &= (xs >= 0) & (xs <= src.width - 1) & (ys >= 0) & (ys <= src.height - 1)
+        ok &= (xs >= -0.5) & (xs <= src.width - 0.5) & (ys >= -0.5) & (ys <= src.height - 0.5)
     outside = torch.full_like(xs, -2.0)
     map_x = torch.where(ok, xs, outside)[None].expand(img.shape[0], -1, -1)
     map_y = torch.where(ok, ys, outside)[None].expand(img.shape[0], -1, -1)
-    out = remap(img, map_x, map_y, mode=mode, padding_mode="zeros", align_corners=True)
+    out = remap(img, map_x, map_y, mode=mode, padding_mode="border", align_corners=True)
     out = torch.where(ok, out, torch.zeros_like(out))
     return (out[0] if squeeze else out), ok
