@@ -33,8 +33,7 @@ kannala_brandt   r = f (theta + k1 theta^3     R90 = f P(pi/2)
 ===============  ============================  ==========================
 
 The first four are the classical fisheye mappings (Miyamoto 1964, "Fish eye
-lens", JOSA 54(8); Kingslake, "A History of the Photographic Lens", 1989);
-the polynomial is Kannala & Brandt 2006 (see :mod:`.kannala_brandt`). The
+lens", JOSA 54(8) 1060–1061); the polynomial is Kannala & Brandt 2006 (see :mod:`.kannala_brandt`). The
 classical ones are parametrised by R90 (``radius``), Kannala–Brandt by ``f``
 (``focal``), each stored exactly as given.
 
@@ -465,8 +464,9 @@ class FisheyeCamera:
             pixel looks exactly at the zenith (see :func:`enu_to_zenith_azimuth`).
         """
         v, valid = self.pixel_vectors(dtype, device)
-        zen, az = enu_to_zenith_azimuth(v)
-        return zen, az, valid
+        zen, az = enu_to_zenith_azimuth(torch.where(valid[..., None], v, torch.zeros_like(v)))
+        nan = torch.full_like(zen, math.nan)
+        return torch.where(valid, zen, nan), torch.where(valid, az, nan), valid
 
     def valid_mask(self, device="cpu") -> Tensor:
         """Pixels inside the lens's field of view (max_zenith_deg from the optical axis), bool (H, W)."""
