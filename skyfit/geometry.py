@@ -110,13 +110,3 @@ def point_along_ray(r: Tensor, mu: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
 def sun_cosine_along_ray(r: Tensor, mu_s: Tensor, nu: Tensor, s: Tensor, r_s: Tensor) -> Tensor:
     """Sun zenith cosine at distance s along a view ray: ``(r mu_s + s nu) / r_s``. [1]"""
     return torch.clamp((r * mu_s + s * nu) / r_s, -1.0, 1.0)
-
-
-def directions_from_angles(zenith_rad: Tensor, azimuth_rad: Tensor) -> Tensor:
-    """Unit vectors in the local (East, North, Up) frame; azimuth clockwise from North.
-
-    Returns:
-        shape (..., 3). [1]
-    """
-    sz = torch.sin(zenith_rad)
-    return torch.stack([sz * torch.sin(azimuth_rad), sz * torch.cos(azimuth_rad), torch.cos(zenith_rad)], dim=-1)

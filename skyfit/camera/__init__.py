@@ -1,16 +1,56 @@
-"""Fisheye cameras (directions per pixel, masks) and the sun's position."""
-from .fisheye import PROJECTIONS, FisheyeCamera, rho_to_theta, theta_to_rho
+"""Fisheye cameras (directions per pixel, masks), the sun's position, and photos (LDR and synthetic)."""
+from .fisheye import (
+    CLASSICAL_PROJECTIONS,
+    PROJECTIONS,
+    FisheyeCamera,
+    enu_to_zenith_azimuth,
+    reproject,
+    rho_to_theta,
+    theta_to_rho,
+    zenith_azimuth_to_enu,
+)
+from .kannala_brandt import check_kb_monotone, kb_derivative, kb_polynomial, kb_theta
+from .photo import (
+    PhotoObservation,
+    SyntheticPhoto,
+    censored_gaussian_nll,
+    fit_exposure_scale,
+    load_ldr_photo,
+    spectral_response_matrix,
+    srgb_decode,
+    srgb_encode,
+    synthesize_photo,
+    vignetting_map,
+)
 from .sun import SunPosition, delta_t_espenak_meeus, julian_day, parse_location, parse_time, sun_position
 
 __all__ = [
+    "CLASSICAL_PROJECTIONS",
     "PROJECTIONS",
     "FisheyeCamera",
+    "PhotoObservation",
     "SunPosition",
+    "SyntheticPhoto",
+    "censored_gaussian_nll",
+    "check_kb_monotone",
     "delta_t_espenak_meeus",
+    "enu_to_zenith_azimuth",
+    "fit_exposure_scale",
     "julian_day",
+    "kb_derivative",
+    "kb_polynomial",
+    "kb_theta",
+    "load_ldr_photo",
     "parse_location",
     "parse_time",
+    "reproject",
     "rho_to_theta",
+    "spectral_response_matrix",
+    "srgb_decode",
+    "srgb_encode",
     "sun_position",
+    "synthesize_photo",
     "theta_to_rho",
+    "vignetting_map",
+    "zenith_azimuth_to_enu",
 ]

@@ -8,10 +8,44 @@ import torch
 from torch import Tensor
 
 from ..atmosphere import Atmosphere
-from ..camera import FisheyeCamera
+from ..camera.fisheye import FisheyeCamera, zenith_azimuth_to_enu
 from ..scattering import single_scattering
 from ..transmittance import OpticalDepthIntegrator
 from .colour import spectral_to_xyz, xyz_to_linear_srgb
+
+
+def render_vectors(
+    atm: Atmosphere,
+    view: Tensor,
+    sun: Tensor,
+    integrator: OpticalDepthIntegrator,
+    altitude: float | Tensor = 0.0,
+    orders: int = 1,
+    **kwargs,
+) -> Tensor:
+    """Spectral radiance seen from ``altitude`` along unit view vectors (local East, North, Up frame).
+
+    Args:
+        view: unit view directions, shape (..., 3). [1]
+        sun: unit direction to the sun, shape (3,) or (..., 3). [1]
+        integrator: optical-depth method.
+        altitude: observer height above the ground (may exceed the atmosphere). [m]
+        orders: scattering orders; 1 = single scattering.
+        **kwargs: passed to :func:`skyfit.scattering.single_scattering`.
+
+    Returns:
+        shape (..., W). [W/(m^2 sr nm)]
+    """
+    if orders != 1:
+        raise ValueError(f"orders={orders}: only single scattering (orders=1) is implemented so far")
+    view = torch.as_tensor(view, dtype=atm.dtype, device=atm.device)
+    sun = torch.as_tensor(sun, dtype=atm.dtype, device=atm.device)
+    # mu, mu_s are the Up components; nu = v . s needs no angles, so it is smooth at the zenith.
+    mu = torch.clamp(view[..., 2], -1.0, 1.0)
+    mu_s = torch.clamp(sun[..., 2], -1.0, 1.0)
+    nu = torch.clamp((view * sun).sum(-1), -1.0, 1.0)
+    r = atm.bottom_radius + torch.as_tensor(altitude, dtype=atm.dtype, device=atm.device)
+    return single_scattering(atm, r, mu, mu_s, nu, integrator, **kwargs)
 
 
 def render_directions(
@@ -25,29 +59,19 @@ def render_directions(
     orders: int = 1,
     **kwargs,
 ) -> Tensor:
-    """Spectral radiance seen from ``altitude`` in directions (zenith, azimuth), all angles in rad.
+    """Spectral radiance in directions (zenith, azimuth), angles in rad (see :func:`render_vectors`).
 
     Args:
         zenith, azimuth: view directions (azimuth clockwise from North), shape (...). [rad]
         sun_zenith, sun_azimuth: sun direction, scalars or shape (...). [rad]
-        altitude: observer height above the ground (may exceed the atmosphere). [m]
-        orders: scattering orders; 1 = single scattering.
-        **kwargs: passed to :func:`skyfit.scattering.single_scattering`.
 
     Returns:
         shape (..., W). [W/(m^2 sr nm)]
     """
-    if orders != 1:
-        raise ValueError(f"orders={orders}: only single scattering (orders=1) is implemented so far")
     T = lambda v: torch.as_tensor(v, dtype=atm.dtype, device=atm.device)  # noqa: E731
-    zenith, azimuth, sz, sa, alt = (T(v) for v in (zenith, azimuth, sun_zenith, sun_azimuth, altitude))
-    mu = torch.cos(zenith)
-    mu_s = torch.cos(sz)
-    # nu = v . s for directions given by (zenith, azimuth) in the local frame.
-    nu = mu * mu_s + torch.sin(zenith) * torch.sin(sz) * torch.cos(azimuth - sa)
-    nu = torch.clamp(nu, -1.0, 1.0)
-    r = atm.bottom_radius + alt
-    return single_scattering(atm, r, mu, mu_s, nu, integrator, **kwargs)
+    view = zenith_azimuth_to_enu(T(zenith), T(azimuth))
+    sun = zenith_azimuth_to_enu(T(sun_zenith), T(sun_azimuth))
+    return render_vectors(atm, view, sun, integrator, altitude, orders, **kwargs)
 
 
 @dataclasses.dataclass
@@ -71,12 +95,14 @@ def render_fisheye(
     altitude: float = 0.0,
     **kwargs,
 ) -> SkyImage:
-    """Render a fisheye sky image; pixels outside the camera's disc are 0."""
-    zen, az, valid = camera.pixel_directions(atm.dtype, atm.device)
-    spectral = torch.zeros(*zen.shape, atm.wavelengths.shape[0], dtype=atm.dtype, device=atm.device)
-    vals = render_directions(
-        atm, zen[valid], az[valid], math.radians(sun_zenith_deg), math.radians(sun_azimuth_deg), integrator, altitude, **kwargs
+    """Render a fisheye sky image; pixels outside the camera's field of view are 0."""
+    view, valid = camera.pixel_vectors(atm.dtype, atm.device)
+    sun = zenith_azimuth_to_enu(
+        torch.tensor(math.radians(sun_zenith_deg), dtype=atm.dtype, device=atm.device),
+        torch.tensor(math.radians(sun_azimuth_deg), dtype=atm.dtype, device=atm.device),
     )
+    spectral = torch.zeros(*valid.shape, atm.wavelengths.shape[0], dtype=atm.dtype, device=atm.device)
+    vals = render_vectors(atm, view[valid], sun, integrator, altitude, **kwargs)
     spectral = spectral.index_put((valid,), vals)
     xyz = spectral_to_xyz(spectral, atm.wavelengths)
     return SkyImage(spectral, xyz, xyz_to_linear_srgb(xyz), valid, atm.wavelengths, camera)
