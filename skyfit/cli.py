@@ -155,16 +155,33 @@ def _exr_payload(img, atm, integrator, args, sun_zenith, sun_azimuth, spectral: 
     return chans, meta
 
 
-def _sun_from_args(args) -> tuple[float, float]:
+def _sun_from_args(args) -> tuple[float, float, dict]:
+    """Sun zenith and azimuth [deg] from --sun-zenith/--sun-azimuth or --time/--location (NREL SPA).
+
+    Returns also a dict for the EXR header (time, location, Earth-Sun distance when dated).
+    """
     if args.time or args.location:
-        raise UserError("--time/--location need the sun-position module (issue 4); use --sun-zenith/--sun-azimuth")
+        from .camera import parse_location, parse_time, sun_position
+
+        if not (args.time and args.location):
+            raise UserError("--time and --location go together (ISO 8601 time with offset, LAT,LON[,ELEV])")
+        if args.sun_zenith is not None:
+            raise UserError("give the sun either by --sun-zenith/--sun-azimuth or by --time/--location, not both")
+        lat, lon, elev = parse_location(args.location)
+        when = parse_time(args.time)
+        sp = sun_position(when, lat, lon, elev)
+        # The renderer has no refraction, so it takes the geometric (airless) sun direction.
+        zen, az = float(sp.zenith_geometric), float(sp.azimuth)
+        info = {"time": when.isoformat(), "location": {"latitude_deg": lat, "longitude_deg": lon, "elevation_m": elev},
+                "distance_au": float(sp.distance_au), "apparent_zenith_deg": float(sp.zenith)}
+        return zen, az, info
     if args.sun_zenith is None:
-        raise UserError("give the sun with --sun-zenith DEG [--sun-azimuth DEG]")
+        raise UserError("give the sun with --sun-zenith DEG [--sun-azimuth DEG], or --time ISO8601 --location LAT,LON[,ELEV]")
     if not (0.0 <= args.sun_zenith <= 180.0):
         raise UserError(f"--sun-zenith must be in [0, 180] degrees, got {args.sun_zenith}")
     if not math.isfinite(args.sun_azimuth):
         raise UserError(f"--sun-azimuth must be a finite angle in degrees, got {args.sun_azimuth}")
-    return float(args.sun_zenith), float(args.sun_azimuth)
+    return float(args.sun_zenith), float(args.sun_azimuth), {}
 
 
 def _check_render_numbers(args) -> None:
@@ -189,17 +206,18 @@ def cmd_render(args) -> int:
         raise UserError(f"--view-samples must be >= 1, got {args.view_samples}")
     if args.orders != 1:
         raise UserError(f"--orders {args.orders}: only single scattering (--orders 1) is implemented so far")
-    sun_zenith, sun_azimuth = _sun_from_args(args)
+    sun_zenith, sun_azimuth, sun_info = _sun_from_args(args)
     _check_render_numbers(args)
     lam = parse_wavelengths(args.wavelengths)
     integrator = parse_integrator(args.integrator)
     device = _check_device(args.device)
-    atm = load_atmosphere(args.config, lam, dtype=_dtype(args.dtype), device=device)
+    atm = load_atmosphere(args.config, lam, dtype=_dtype(args.dtype), device=device, sun_distance_au=sun_info.get("distance_au"))
     t0 = time.perf_counter()
     with torch.no_grad():
         img = _render_image(args, atm, integrator, sun_zenith, sun_azimuth, args.size, args.projection)
     elapsed = time.perf_counter() - t0
     chans, meta = _exr_payload(img, atm, integrator, args, sun_zenith, sun_azimuth, args.spectral)
+    meta["sun"].update(sun_info)
     bad = sorted(k for k, v in chans.items() if not np.isfinite(v).all())
     if bad:  # never write an image of NaN/Inf (a parameter the checks above missed, or a renderer bug)
         raise UserError(f"render of {args.config} produced non-finite values in channel(s) {bad}; nothing written")
@@ -287,8 +305,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--max-zenith", type=float, help="field of view: largest angle from the optical axis [deg] (default 90)")
     r.add_argument("--sun-zenith", type=float, help="sun zenith angle [deg]")
     r.add_argument("--sun-azimuth", type=float, default=180.0, help="sun azimuth, clockwise from North [deg]")
-    r.add_argument("--time", help="ISO 8601 timestamp (needs the sun-position module)")
-    r.add_argument("--location", help="LAT,LON[,ELEV] (needs the sun-position module)")
+    r.add_argument("--time", help="ISO 8601 timestamp with UTC offset, e.g. 2013-05-27T09:30:00-04:00 (sun by NREL SPA)")
+    r.add_argument("--location", help="LAT,LON[,ELEV]: degrees North, degrees East, metres (with --time)")
     r.add_argument("--altitude", type=float, default=0.0, help="observer altitude above the ground [m]")
     r.add_argument("--integrator", default="taylor", help="NAME[:key=value,...], e.g. trapezoid:samples=64, taylor:a=0.45,b=0.45")
     r.add_argument("--view-samples", type=int, default=32, help="samples of the outer (view-ray) integral")

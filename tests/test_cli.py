@@ -246,3 +246,38 @@ def test_demo_quick(tmp_path, capsys):
     noon, _ = read_exr(out / "noon.exr")
     c = noon["Y"].shape[0] // 2
     assert noon["B"][c, c] > noon["R"][c, c]  # a clear noon zenith is blue
+
+
+def test_render_sun_from_time_and_location(tmp_path, capsys):
+    """--time/--location place the sun by NREL SPA; the image equals one rendered at that sun direction."""
+    from skyfit.camera import sun_position
+
+    when, site = "2013-05-27T12:00:00-04:00", "42.443449,-76.481962,250"
+    dated, direct = tmp_path / "dated.exr", tmp_path / "direct.exr"
+    code, _, _ = _run(["render", "earth", "--out", str(dated), "--size", "12", "--time", when, "--location", site], capsys)
+    assert code == 0
+    chans, meta = read_exr(dated)
+    sp = sun_position(when, 42.443449, -76.481962, 250.0)
+    assert meta["sun"]["zenith_deg"] == pytest.approx(float(sp.zenith_geometric), abs=1e-9)
+    assert meta["sun"]["azimuth_deg"] == pytest.approx(float(sp.azimuth), abs=1e-9)
+    assert meta["sun"]["distance_au"] == pytest.approx(1.0133, abs=2e-4)  # data README: 1.0133 AU on 2013-05-27
+    code, _, _ = _run(["render", "earth", "--out", str(direct), "--size", "12", "--sun-zenith", repr(meta["sun"]["zenith_deg"]),
+                    "--sun-azimuth", repr(meta["sun"]["azimuth_deg"])], capsys)
+    assert code == 0
+    chans2, _ = read_exr(direct)
+    # Same geometry; the dated render's sun is 1/1.0133^2 brighter than the config's 1 AU sun.
+    scale = 1.0 / meta["sun"]["distance_au"] ** 2
+    np.testing.assert_allclose(chans["Y"], chans2["Y"] * scale, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("args, keyword", [
+    (["--time", "2013-05-27T12:00:00-04:00"], "go together"),
+    (["--time", "2013-05-27T12:00:00", "--location", "42,-76"], "UTC offset"),
+    (["--time", "2013-05-27T12:00:00-04:00", "--location", "142,-76"], "latitude"),
+    (["--time", "not-a-time", "--location", "42,-76"], "time"),
+])
+def test_render_bad_time_or_location(args, keyword, tmp_path, capsys):
+    out = tmp_path / "x.exr"
+    code, _, err = _run(["render", "earth", "--out", str(out), "--size", "8", *args], capsys)
+    assert code == 2 and keyword in err and "\n" not in err.strip()
+    assert not out.exists()

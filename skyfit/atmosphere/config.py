@@ -125,8 +125,13 @@ def atmosphere_from_config(
     wavelengths_nm,
     dtype: torch.dtype = torch.float64,
     device: torch.device | str = "cpu",
+    sun_distance_au: float | None = None,
 ) -> Atmosphere:
-    """Build a validated :class:`Atmosphere` on ``wavelengths_nm`` from a config dict."""
+    """Build a validated :class:`Atmosphere` on ``wavelengths_nm`` from a config dict.
+
+    ``sun_distance_au`` overrides the config's ``sun.distance_au`` (e.g. the
+    Earth-Sun distance of a dated observation, from :func:`skyfit.camera.sun_position`).
+    """
     lam = np.atleast_1d(np.asarray(wavelengths_nm, float))
     T = functools.partial(torch.as_tensor, dtype=dtype, device=device)
     known = {"name", "source", "description", "notes", *SECTION_KEYS}
@@ -166,7 +171,7 @@ def atmosphere_from_config(
     else:
         albedo = np.full_like(lam, _get(gnd, "albedo", C.GROUND_ALBEDO, "ground"))
 
-    dist = _get(sun, "distance_au", 1.0, "sun")
+    dist = _get(sun, "distance_au", 1.0, "sun") if sun_distance_au is None else float(sun_distance_au)
     if not 0 < dist < math.inf:
         raise ConfigError(f"sun.distance_au must be > 0, got {dist}")
     bandwidth = None
@@ -218,7 +223,9 @@ def atmosphere_from_config(
         raise ConfigError(str(e)) from None
 
 
-def load_atmosphere(path_or_name: str | Path, wavelengths_nm, dtype=torch.float64, device="cpu") -> Atmosphere:
+def load_atmosphere(
+    path_or_name: str | Path, wavelengths_nm, dtype=torch.float64, device="cpu", sun_distance_au: float | None = None
+) -> Atmosphere:
     """Load a config by path, or by the name of a shipped config (``earth``, ``mars`` ...)."""
     p = Path(path_or_name)
     if not p.exists() and not p.suffix:
@@ -227,6 +234,6 @@ def load_atmosphere(path_or_name: str | Path, wavelengths_nm, dtype=torch.float6
             p = shipped
     cfg = load_yaml(p)
     try:
-        return atmosphere_from_config(cfg, wavelengths_nm, dtype, device)
+        return atmosphere_from_config(cfg, wavelengths_nm, dtype, device, sun_distance_au)
     except ConfigError as e:  # name the file (CONTRACT.md: the message names the problem and the file)
         raise ConfigError(f"config {p}: {e}") from None
