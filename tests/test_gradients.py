@@ -40,7 +40,7 @@ FAST_SETTINGS = {
     "simpson": {"samples": 9},
     "gauss": {"samples": 8},
     "taylor": {},
-    "spline": {},
+    "spline": {"height_points": 16, "distance_points": 8},
     "bruneton_lut": {"mu_size": 32, "r_size": 8, "samples": 32},
     "height_fog": {},
     "chapman": {},
