@@ -47,44 +47,49 @@ def taylor_column(r: Tensor, mu: Tensor, length: Tensor, scale_heights: Tensor, 
     Returns:
         Column, shape (..., K). [m]
     """
-    # No broadcast up front: per-ray quantities keep the shape of (r, mu), so a
-    # view ray sampled at N lengths computes its line parameters once, not N times.
+    # No broadcast up front: per-ray quantities keep the shape of (r, mu), so a view ray
+    # sampled at N lengths computes its line parameters once, not N times. Each value is
+    # computed with the same operations as the broadcast form: in the out-of-regime cases
+    # (grazing rays, where eq. 17 cancels) a reordering would change the rounding visibly.
     r, mu, length = (x.unsqueeze(-1) for x in (r, mu, length))
-    inv_H = 1.0 / scale_heights
+    H = scale_heights
     R = bottom_radius
     # Line parameters (Gałaj 2021 Fig. 2-4): distance d of the line from the centre,
     # signed position t0 of the start relative to the closest point P_o.
-    d2 = torch.clamp_min(r * r * ((1.0 - mu) * (1.0 + mu)), 0.0)
+    d2 = r * r * (1.0 - mu) * (1.0 + mu)
+    d2 = torch.clamp_min(d2, 0.0)
     t0 = r * mu
     t1 = t0 + length
     t_min = safe_sqrt(R * R - d2)  # eq. 12: sqrt(r^2 - d^2) for d < r, else 0
-    t_max = torch.maximum(safe_sqrt(top_radius * top_radius - d2), t_min)
+    t_max = safe_sqrt(top_radius * top_radius - d2)
+    t_max = torch.maximum(t_max, t_min)
     tau = t_min + b * (t_max - t_min)
-    rho = torch.clamp_min(safe_sqrt(d2 + tau * tau), 1.0)  # sqrt(d^2 + tau^2) > 0 unless d = tau = 0
+    rho = safe_sqrt(d2 + tau * tau)  # sqrt(d^2 + tau^2) > 0 unless d = tau = 0
+    rho = torch.clamp_min(rho, 1.0)
     h_tau = rho - R
     hp = torch.clamp_min(tau / rho, 1e-9)  # h'(tau)
-    c2 = (0.5 * a) * d2 / rho**3  # a h''(tau) / 2
+    hpp = d2 / rho**3  # h''(tau)
 
-    def neg_h_tilde(t: Tensor) -> Tensor:
-        """-h~(t) = -(a h'' (t - tau)^2 / 2 + h' (t - tau) + h(tau)), shape of t."""
+    def h_tilde(t: Tensor) -> Tensor:
         dt = t - tau
-        return -((c2 * dt + hp) * dt + h_tau)
+        return 0.5 * a * hpp * dt * dt + hp * dt + h_tau
 
-    exp_min = torch.exp(torch.clamp_max(neg_h_tilde(t_min) * inv_H, _EXP_CAP))
+    exp_min = torch.exp(torch.clamp_max(-h_tilde(t_min) / H, _EXP_CAP))
+    H_hp = H / hp
 
     def F(t: Tensor) -> Tensor:
-        """Signed antiderivative about P_o divided by H / h'(tau): eqs. 13/14 both read
-        F(t1) - F(t0) with F(t) = sign(t) G(|t|), and G(t) of eq. 17 for t >= t_min is
-        H / h'(tau) (exp(-h~(t_min)/H) - exp(-h~(t)/H))."""
+        """Signed antiderivative about P_o: eqs. 13 (ends on both sides) and 14 (same side)
+        are both F(t1) - F(t0) with F(t) = sign(t) G(|t|), and eq. 17 for t >= t_min reads
+        G(t) = H / h'(tau) (exp(-h~(t_min)/H) - exp(-h~(t)/H))."""
         tt = torch.maximum(t.abs(), t_min)
-        g = exp_min - torch.exp(torch.clamp_max(neg_h_tilde(tt) * inv_H, _EXP_CAP))
+        g = H_hp * (exp_min - torch.exp(torch.clamp_max(-h_tilde(tt) / H, _EXP_CAP)))
         return torch.where(t < 0, -g, g)
 
-    col = (scale_heights / hp) * (F(t1) - F(t0))
+    col = F(t1) - F(t0)
     # Exact bound: the density never exceeds its value at the segment's lowest point.
     t_low = torch.clamp(torch.zeros_like(t1), min=t0, max=t1)  # closest point to P_o on the segment
     h_low = safe_sqrt(d2 + t_low * t_low) - R
-    bound = length * torch.exp(torch.clamp_min(h_low, 0.0) * -inv_H)
+    bound = length * torch.exp(-torch.clamp_min(h_low, 0.0) / H)
     return torch.minimum(torch.clamp_min(col, 0.0), bound)
 
 
