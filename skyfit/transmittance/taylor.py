@@ -42,7 +42,7 @@ def taylor_column(r: Tensor, mu: Tensor, length: Tensor, scale_heights: Tensor, 
         mu: view cosine at the start, shape (...). [1]
         length: segment length, shape (...). [m]
         scale_heights: shape (K,). [m]
-        a, b: hyperparameters in [0, 1], shape () (0.45, 0.45 in the paper). [1]
+        a, b: hyperparameters in [0, 1], shape () (0.45, 0.45 in the paper) or (K,), one per layer. [1]
 
     Returns:
         Column, shape (..., K). [m]
@@ -94,7 +94,12 @@ def taylor_column(r: Tensor, mu: Tensor, length: Tensor, scale_heights: Tensor, 
 
 
 class TaylorOpticalDepth(OpticalDepthIntegrator):
-    """Gałaj 2021 Taylor method with hyperparameters ``a``, ``b`` as tensors (fit-able)."""
+    """Gałaj 2021 Taylor method with hyperparameters ``a``, ``b`` as tensors (fit-able).
+
+    ``a`` and ``b`` are scalars (shape (), one pair for every layer, as in the
+    paper) or one value per layer (shape (K,), in the order of the scale heights,
+    e.g. from ``skyfit calibrate-integrator``'s ``taylor.per_layer``).
+    """
 
     name = "taylor"
 
@@ -102,15 +107,23 @@ class TaylorOpticalDepth(OpticalDepthIntegrator):
         self.a = a
         self.b = b
         for nm, v in (("a", a), ("b", b)):
-            vv = float(v.detach()) if isinstance(v, Tensor) else float(v)
-            if not 0.0 <= vv <= 1.0:
-                raise ValueError(f"Taylor hyperparameter {nm} must be in [0, 1], got {vv}")
+            vv = v.detach().cpu().double() if isinstance(v, Tensor) else torch.as_tensor(v, dtype=torch.float64)
+            if vv.ndim > 1:
+                raise ValueError(f"Taylor hyperparameter {nm} must be a scalar or one value per layer (shape (K,)), got shape {tuple(vv.shape)}")
+            if not bool(((vv >= 0.0) & (vv <= 1.0)).all()):
+                raise ValueError(f"Taylor hyperparameter {nm} must be in [0, 1], got {vv.tolist()}")
 
     def column(self, r, mu, length, scale_heights, bottom_radius, top_radius) -> Tensor:
         a = torch.as_tensor(self.a, dtype=r.dtype, device=r.device)
         b = torch.as_tensor(self.b, dtype=r.dtype, device=r.device)
+        for nm, v in (("a", a), ("b", b)):
+            if v.ndim == 1 and v.shape[0] != scale_heights.shape[-1]:
+                raise ValueError(f"Taylor hyperparameter {nm} has {v.shape[0]} values, one per layer, but there are {scale_heights.shape[-1]} layers")
         return taylor_column(r, mu, length, scale_heights, bottom_radius, top_radius, a, b)
 
     def settings(self) -> dict:
-        f = lambda v: float(v.detach()) if isinstance(v, Tensor) else float(v)  # noqa: E731
+        def f(v):
+            v = v.detach() if isinstance(v, Tensor) else torch.as_tensor(v, dtype=torch.float64)
+            return float(v) if v.ndim == 0 else [float(x) for x in v]
+
         return {"name": self.name, "a": f(self.a), "b": f(self.b)}
