@@ -1,0 +1,378 @@
+"""Observations in one common form, and loaders for fisheye EXR images and Kider captures.
+
+An :class:`Observation` is what a fit sees of one measurement: N view directions
+(unit ENU vectors), the sun (one direction, or one per sample when a scan takes
+minutes), N x C measured values with their sigma, a mask, and where it came
+from. C channels are spectral (``L<nm>``, W/(m^2 sr nm)) or ``R, G, B``
+(linear sRGB of XYZ with 683 lm/W, CONTRACT.md).
+
+Loaders raise :class:`DataError` (a ValueError) with one line naming the file.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..camera.fisheye import zenith_azimuth_to_enu
+from .losses import horizon_mask, saturation_mask, sun_disc_mask
+
+
+class DataError(ValueError):
+    """Data that cannot be fitted: unreadable, missing metadata, NaN or negative values."""
+
+
+KINDS = ("spectral", "rgb")
+SPECTRAL_UNITS = "W/(m^2 sr nm)"
+RGB_UNITS = "linear sRGB of XYZ with 683 lm/W (Y in cd/m^2)"
+_SPECTRAL_CHANNEL = re.compile(r"^L(\d+(?:\.\d*)?)$")
+
+
+@dataclasses.dataclass
+class Observation:
+    """One measurement as data for a fit.
+
+    Attributes:
+        name: short label (file or folder name).
+        source: the file or folder read.
+        kind: ``'spectral'`` or ``'rgb'``.
+        directions: unit view vectors, East-North-Up, shape (N, 3). [1]
+        sun_zenith, sun_azimuth: the sun, shape () or (N,) (one per sample);
+            azimuth clockwise from North. [rad]
+        values: measured values, shape (N, C). [W/(m^2 sr nm) or linear sRGB]
+        sigma: their standard deviation, shape (N, C), > 0. [same unit]
+        mask: samples to use, shape (N,), bool.
+        channels: channel names, length C (``L550`` ... or ``R, G, B``).
+        wavelengths: channel wavelengths for spectral data, shape (C,); None for RGB. [nm]
+        band_nm: width of the band each spectral value averages (None: point values). [nm]
+        sun_distance_au: Earth-Sun distance at the time, when known. [AU]
+        altitude_m: observer height above the ground. [m]
+        time: ISO 8601 time of the sun position, when known.
+        location: {"latitude_deg", "longitude_deg", "elevation_m"}, when known.
+        metadata: anything else (image shape and pixel index of each sample for images,
+            ring and index for Kider, the model wavelength grid an EXR was rendered on).
+    """
+
+    name: str
+    source: str
+    kind: str
+    directions: Tensor
+    sun_zenith: Tensor
+    sun_azimuth: Tensor
+    values: Tensor
+    sigma: Tensor
+    mask: Tensor
+    channels: tuple[str, ...]
+    wavelengths: Tensor | None = None
+    band_nm: float | None = None
+    sun_distance_au: float | None = None
+    altitude_m: float = 0.0
+    time: str | None = None
+    location: dict | None = None
+    metadata: dict = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        where = f"observation {self.source}"
+        if self.kind not in KINDS:
+            raise DataError(f"{where}: kind must be one of {KINDS}, got {self.kind!r}")
+        n = self.directions.shape[0]
+        if self.directions.shape != (n, 3):
+            raise DataError(f"{where}: directions must have shape (N, 3), got {tuple(self.directions.shape)}")
+        c = len(self.channels)
+        for name in ("values", "sigma"):
+            if getattr(self, name).shape != (n, c):
+                raise DataError(f"{where}: {name} must have shape ({n}, {c}), got {tuple(getattr(self, name).shape)}")
+        if self.mask.shape != (n,) or self.mask.dtype != torch.bool:
+            raise DataError(f"{where}: mask must be a bool tensor of shape ({n},)")
+        for name in ("sun_zenith", "sun_azimuth"):
+            t = getattr(self, name)
+            if t.shape not in ((), (n,)):
+                raise DataError(f"{where}: {name} must have shape () or ({n},), got {tuple(t.shape)}")
+        if self.kind == "spectral":
+            if self.wavelengths is None or self.wavelengths.shape != (c,):
+                raise DataError(f"{where}: spectral data needs one wavelength per channel")
+        m = self.mask
+        if not bool(torch.isfinite(self.values[m]).all()):
+            raise DataError(f"{where}: NaN or Inf among the used values")
+        if bool((self.values[m] < 0).any()):
+            raise DataError(f"{where}: negative values among the used samples")
+        if not bool((self.sigma[m] > 0).all()) or not bool(torch.isfinite(self.sigma[m]).all()):
+            raise DataError(f"{where}: sigma must be finite and > 0")
+        if not bool(m.any()):
+            raise DataError(f"{where}: no usable sample (all masked)")
+
+    @property
+    def n_samples(self) -> int:
+        """Number of used samples (directions)."""
+        return int(self.mask.sum())
+
+    @property
+    def sun(self) -> Tensor:
+        """Unit vector(s) to the sun, shape (3,) or (N, 3). [1]"""
+        return zenith_azimuth_to_enu(self.sun_zenith, self.sun_azimuth)
+
+    @property
+    def units(self) -> str:
+        return SPECTRAL_UNITS if self.kind == "spectral" else RGB_UNITS
+
+    def to(self, dtype=torch.float64, device="cpu") -> "Observation":
+        kw = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, Tensor) and v.is_floating_point():
+                v = v.to(dtype=dtype, device=device)
+            elif isinstance(v, Tensor):
+                v = v.to(device=device)
+            kw[f.name] = v
+        return Observation(**kw)
+
+    def summary(self) -> dict:
+        """JSON-ready description for RESULT.json's ``data``."""
+        def deg(t):
+            t = torch.rad2deg(t.detach().cpu())
+            return float(t) if t.ndim == 0 else {"mean": float(t.mean()), "min": float(t.min()), "max": float(t.max())}
+
+        d = {
+            "name": self.name, "source": self.source, "kind": self.kind, "channels": list(self.channels),
+            "units": self.units, "n_samples": self.n_samples, "n_directions": int(self.directions.shape[0]),
+            "sun_zenith_deg": deg(self.sun_zenith), "sun_azimuth_deg": deg(self.sun_azimuth),
+            "sun_per_sample": self.sun_zenith.ndim == 1, "time": self.time, "location": self.location,
+            "sun_distance_au": self.sun_distance_au, "altitude_m": self.altitude_m,
+        }
+        if self.wavelengths is not None:
+            d["wavelengths_nm"] = [float(v) for v in self.wavelengths.cpu()]
+            d["band_nm"] = self.band_nm
+        for k in ("mask", "sigma_model", "subsample_step", "azimuth_offset_guess_rad", "notes"):
+            if k in self.metadata:
+                d[k] = self.metadata[k]
+        return d
+
+
+# -- EXR fisheye -------------------------------------------------------------------------
+def observation_from_exr(
+    path: str | Path,
+    *,
+    sigma_relative: float = 0.01,
+    sigma_absolute: float | None = None,
+    min_elevation_deg: float = 0.0,
+    sun_disc_deg: float = 2.0,
+    saturation: float | None = None,
+    max_samples: int | None = None,
+    dtype=torch.float64,
+) -> Observation:
+    """An observation from a fisheye OpenEXR with skyfit metadata (CONTRACT.md).
+
+    Channels ``L<nm>`` (spectral radiance) are used when present, else ``R, G, B``.
+    The camera comes from the header's ``camera`` entry
+    (:meth:`skyfit.camera.FisheyeCamera.from_metadata`), the sun from ``sun``
+    (``zenith_deg``, ``azimuth_deg``; ``time``, ``location``, ``distance_au`` when dated).
+    A channel ``mask`` (1 = sky, 0 = obstacle) is honoured.
+
+    Args:
+        path: the .exr file.
+        sigma_relative, sigma_absolute: noise model sigma = hypot(rel x value, abs) unless
+            the header has ``noise: {sigma_relative, sigma_absolute}``; abs defaults to
+            1e-3 x the median used value. [1], [data units]
+        min_elevation_deg: horizon mask: pixels at lower elevation are not used. [deg]
+        sun_disc_deg: pixels closer to the sun are not used (0: keep all). [deg]
+        saturation: samples with a channel at or above this are not used. [data units]
+        max_samples: keep every k-th usable pixel (raster order) so that at most this many remain.
+
+    Raises:
+        DataError / ExrError (ValueErrors) naming the file.
+    """
+    from ..camera import FisheyeCamera
+    from ..io import read_exr
+
+    path = Path(path)
+    chans, meta = read_exr(path)
+    if "camera" not in meta:
+        raise DataError(f"{path}: no camera metadata (the skyfit header's 'camera' entry); cannot map pixels to directions")
+    try:
+        cam = FisheyeCamera.from_metadata(meta["camera"])
+    except ValueError as e:
+        raise DataError(f"{path}: {e}") from None
+    sun = meta.get("sun") or {}
+    try:
+        sz, sa = math.radians(float(sun["zenith_deg"])), math.radians(float(sun["azimuth_deg"]))
+    except (KeyError, TypeError, ValueError):
+        raise DataError(f"{path}: no sun position in the metadata (sun.zenith_deg, sun.azimuth_deg)") from None
+    if not (math.isfinite(sz) and math.isfinite(sa)):
+        raise DataError(f"{path}: sun position is not finite")
+    if sz > math.pi / 2:
+        raise DataError(f"{path}: the sun is below the horizon (zenith {math.degrees(sz):.2f} deg); night skies are not fitted")
+
+    spectral = sorted(((float(m.group(1)), k) for k in chans if (m := _SPECTRAL_CHANNEL.match(k))), key=lambda t: t[0])
+    if spectral:
+        kind, names = "spectral", [k for _, k in spectral]
+        wavelengths = torch.tensor([w for w, _ in spectral], dtype=dtype)
+    elif all(k in chans for k in "RGB"):
+        kind, names, wavelengths = "rgb", ["R", "G", "B"], None
+    else:
+        raise DataError(f"{path}: neither spectral L<nm> channels nor R, G, B (channels: {sorted(chans)})")
+    shape = cam.shape
+    for k in names + (["mask"] if "mask" in chans else []):
+        if chans[k].shape != shape:
+            raise DataError(f"{path}: channel {k} has shape {chans[k].shape}, the camera metadata says {shape}")
+
+    view, valid = cam.pixel_vectors(dtype)
+    view = view.reshape(-1, 3)
+    valid = valid.reshape(-1)
+    values = torch.from_numpy(np.stack([chans[k] for k in names], -1).reshape(-1, len(names)).astype(np.float64)).to(dtype)
+    v_valid = values[valid]
+    if not bool(torch.isfinite(v_valid).all()):
+        bad = [names[c] for c in range(len(names)) if not bool(torch.isfinite(v_valid[:, c]).all())]
+        raise DataError(f"{path}: NaN or Inf pixels in channel(s) {bad}")
+    if bool((v_valid < 0).any()):
+        bad = [names[c] for c in range(len(names)) if bool((v_valid[:, c] < 0).any())]
+        raise DataError(f"{path}: negative pixels in channel(s) {bad}")
+
+    keep = valid.clone()
+    safe_view = torch.where(valid[:, None], view, torch.tensor([0.0, 0.0, 1.0], dtype=dtype))
+    sun_vec = zenith_azimuth_to_enu(torch.tensor(sz, dtype=dtype), torch.tensor(sa, dtype=dtype))
+    keep &= horizon_mask(safe_view, min_elevation_deg)
+    keep &= sun_disc_mask(safe_view, sun_vec, sun_disc_deg)
+    keep &= saturation_mask(values, saturation)
+    mask_note = {"field_of_view": int(valid.sum()), "min_elevation_deg": min_elevation_deg,
+                 "sun_disc_deg": sun_disc_deg, "saturation": saturation}
+    if "mask" in chans:
+        obstacle = torch.from_numpy(chans["mask"].reshape(-1) > 0.5)
+        keep &= obstacle
+        mask_note["obstacles"] = int((~obstacle & valid).sum())
+    idx = torch.nonzero(keep).reshape(-1)
+    if idx.numel() == 0:
+        raise DataError(f"{path}: no usable pixel (field of view, horizon, sun disc and saturation masks leave none)")
+    step = 1
+    if max_samples is not None and idx.numel() > max_samples:
+        step = math.ceil(idx.numel() / max_samples)
+        idx = idx[::step]
+    vals = values[idx]
+    noise = meta.get("noise") if isinstance(meta.get("noise"), dict) else {}
+    rel = float(noise.get("sigma_relative", sigma_relative))
+    absolute = noise.get("sigma_absolute", sigma_absolute)
+    absolute = 1e-3 * float(vals.median()) if absolute is None else float(absolute)
+    if not (rel >= 0 and absolute >= 0 and rel + absolute > 0):
+        raise DataError(f"{path}: the noise model needs sigma_relative >= 0 and sigma_absolute >= 0, not both 0")
+    if absolute == 0 and bool((vals == 0).any()):
+        absolute = 1e-3 * float(vals[vals > 0].median()) if bool((vals > 0).any()) else 1e-12
+    sigma = torch.sqrt((rel * vals) ** 2 + absolute**2)
+    loc = sun.get("location")
+    return Observation(
+        name=path.stem, source=str(path), kind=kind, directions=view[idx],
+        sun_zenith=torch.tensor(sz, dtype=dtype), sun_azimuth=torch.tensor(sa, dtype=dtype),
+        values=vals, sigma=sigma, mask=torch.ones(idx.numel(), dtype=torch.bool), channels=tuple(names),
+        wavelengths=wavelengths, band_nm=None, sun_distance_au=float(sun["distance_au"]) if "distance_au" in sun else None,
+        altitude_m=float(meta.get("observer_altitude_m", 0.0) or 0.0), time=sun.get("time"),
+        location=loc if isinstance(loc, dict) else None,
+        metadata={
+            "image_shape": list(shape), "pixel_index": idx, "camera": meta["camera"], "mask": mask_note,
+            "subsample_step": step, "sigma_model": {"relative": rel, "absolute": absolute},
+            "model_wavelengths_nm": meta.get("wavelengths_nm"),
+        },
+    )
+
+
+# -- Kider captures ----------------------------------------------------------------------
+def observation_from_kider(
+    folder: str | Path,
+    *,
+    bin_nm: float = 10.0,
+    lo_nm: float = 360.0,
+    hi_nm: float = 720.0,
+    per_sample_sun: bool = True,
+    time_reference: str = "mid",
+    min_sun_distance_deg: float = 0.0,
+    latitude: float | None = None,
+    longitude: float | None = None,
+    elevation: float | None = None,
+    utc_offset_hours: float | None = None,
+    dtype=torch.float64,
+) -> Observation:
+    """An observation from a Kider et al. 2014 capture folder (docs/data.md).
+
+    Spectra are box-averaged over ``bin_nm`` bins in [lo_nm, hi_nm]
+    (:meth:`skyfit.io.KiderCapture.band_average`; the model's solar spectrum is
+    the same box average). With ``per_sample_sun`` each sample carries the sun at
+    its own scan time; else the capture's (mid-time) sun. The sun is the SPA's
+    refracted position (0.02° above the geometric one at these zenith angles).
+    ``metadata['azimuth_offset_guess_rad']`` is the mean offset of the rings'
+    symmetry axes from the sun azimuth (:func:`skyfit.io.ring_symmetry_azimuths`),
+    a starting point for ``sun_azimuth_offset``.
+    """
+    from ..io import kider
+
+    site = {}
+    if latitude is not None:
+        site["latitude"] = latitude
+    if longitude is not None:
+        site["longitude"] = longitude
+    if elevation is not None:
+        site["elevation"] = elevation
+    if utc_offset_hours is not None:
+        site["utc_offset_hours"] = utc_offset_hours
+    cap = kider.load_kider_capture(folder, time_reference=time_reference, min_sun_distance_deg=min_sun_distance_deg, **site)
+    centres, rad, sig = cap.band_average(bin_nm, lo_nm, hi_nm)
+    T = lambda a: torch.as_tensor(np.asarray(a, float), dtype=dtype)  # noqa: E731
+    directions = zenith_azimuth_to_enu(T(cap.view_zenith), T(cap.view_azimuth))
+    if per_sample_sun:
+        sz, sa = T(cap.sample_sun_zenith), T(cap.sample_sun_azimuth)
+    else:
+        sz, sa = T(cap.sun_zenith), T(cap.sun_azimuth)
+    axes = kider.ring_symmetry_azimuths(cap)
+    guess = float(np.angle(np.mean(np.exp(1j * (axes - cap.sun_azimuth)))))
+    channels = tuple(f"L{c:g}" for c in centres)
+    return Observation(
+        name=cap.name, source=str(cap.path), kind="spectral", directions=directions, sun_zenith=sz, sun_azimuth=sa,
+        values=T(rad), sigma=T(sig), mask=torch.as_tensor(cap.valid, dtype=torch.bool), channels=channels,
+        wavelengths=T(centres), band_nm=float(bin_nm), sun_distance_au=cap.sun_distance_au, altitude_m=0.0,
+        time=cap.time.isoformat(),
+        location={"latitude_deg": cap.latitude_deg, "longitude_deg": cap.longitude_deg, "elevation_m": cap.elevation_m},
+        metadata={
+            "ring": torch.as_tensor(cap.ring), "index": torch.as_tensor(cap.index), "azimuth_offset_guess_rad": guess,
+            "mask": {"valid": int(cap.valid.sum()), "min_sun_distance_deg": min_sun_distance_deg},
+            "notes": list(cap.notes) + [f"sample {k}: {v}" for k, v in cap.repaired.items()],
+            "time_source": cap.time_source,
+        },
+    )
+
+
+# -- dispatch ------------------------------------------------------------------------------
+def expand_data_paths(paths: Sequence[str | Path]) -> list[tuple[str, Path]]:
+    """(kind, path) for each DATA argument: an .exr file, a Kider capture folder, or a folder of either."""
+    from ..io import is_kider_capture_name
+
+    out: list[tuple[str, Path]] = []
+    for p in map(Path, paths):
+        if p.is_file():
+            out.append(("exr", p))
+        elif p.is_dir() and is_kider_capture_name(p.name):
+            out.append(("kider", p))
+        elif p.is_dir():
+            caps = sorted(q for q in p.iterdir() if q.is_dir() and is_kider_capture_name(q.name))
+            exrs = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() == ".exr")
+            if not caps and not exrs:
+                raise DataError(f"{p}: a folder with neither Kider captures (YYYY-MM-DD___HH.MM.SS) nor .exr files")
+            out += [("kider", q) for q in caps] + [("exr", q) for q in exrs]
+        else:
+            raise DataError(f"data not found: {p}")
+    if not out:
+        raise DataError("no data given")
+    return out
+
+
+def load_observations(paths: Sequence[str | Path], exr_options: dict | None = None,
+                      kider_options: dict | None = None) -> list[Observation]:
+    """Observations from DATA arguments (:func:`expand_data_paths`), with per-format options."""
+    obs = []
+    for kind, p in expand_data_paths(paths):
+        if kind == "exr":
+            obs.append(observation_from_exr(p, **(exr_options or {})))
+        else:
+            obs.append(observation_from_kider(p, **(kider_options or {})))
+    return obs

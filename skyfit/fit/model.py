@@ -1,0 +1,241 @@
+"""The forward model of a fit: parameters -> atmosphere -> radiance -> each observation's channels.
+
+:class:`SkyModel` holds the renderer's settings; :meth:`SkyModel.renderer` is the
+single place where radiance is computed for fitting and evaluation (orders > 1 plug
+in there: precompute once per atmosphere, then look up per observation).
+:class:`FitProblem` ties a :class:`~skyfit.fit.parameters.Parameterisation`, a
+SkyModel, observations and a :class:`~skyfit.fit.losses.Loss` into a scalar
+objective of the unconstrained vector x.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..atmosphere import Atmosphere
+from ..camera.fisheye import zenith_azimuth_to_enu
+from ..render.colour import _srgb_matrix, spectral_to_xyz_matrix
+from ..transmittance import OpticalDepthIntegrator
+from .data import DataError, Observation
+from .losses import Loss
+from .parameters import FitError, Parameterisation
+
+Renderer = Callable[[Tensor, Tensor], Tensor]
+
+
+@dataclasses.dataclass
+class SkyModel:
+    """Renderer settings shared by every observation of a fit.
+
+    Attributes:
+        integrator: optical-depth method.
+        orders: scattering orders (1 = single scattering).
+        view_samples: samples of the view-ray integral.
+        rule: outer quadrature rule.
+        ground: add the sunlit Lambertian ground for rays that hit it.
+        chunk_bytes: working memory per chunk (None: the renderer's default). [bytes]
+    """
+
+    integrator: OpticalDepthIntegrator
+    orders: int = 1
+    view_samples: int = 32
+    rule: str = "trapezoid"
+    ground: bool = True
+    chunk_bytes: float | None = None
+
+    def renderer(self, atm: Atmosphere, altitude_m: float = 0.0) -> Renderer:
+        """A function ``(directions (N, 3), sun (3,) or (N, 3)) -> radiance (N, W)`` for ``atm``.
+
+        Called once per atmosphere (one loss evaluation), then once per observation:
+        precomputation that depends only on the atmosphere belongs here. This is the
+        call site for multiple scattering (orders > 1): build the tables for ``atm``
+        here and return their lookup.
+        """
+        from ..render.sky import render_vectors
+
+        column_fn = self.integrator.prepare(atm.scale_heights, atm.bottom_radius, atm.top_radius)
+
+        def render(directions: Tensor, sun: Tensor) -> Tensor:
+            return render_vectors(
+                atm, directions, sun, self.integrator, altitude_m, self.orders, view_samples=self.view_samples,
+                rule=self.rule, ground=self.ground, chunk_bytes=self.chunk_bytes, column_fn=column_fn,
+            )
+
+        return render
+
+    def settings(self) -> dict:
+        return {"orders": self.orders, "view_samples": self.view_samples, "rule": self.rule, "ground": self.ground}
+
+
+def channel_matrix(model_wavelengths: Tensor, obs: Observation) -> Tensor:
+    """Matrix M (W, C) with obs channels = model spectral radiance (N, W) @ M.
+
+    Spectral data select their wavelengths from the model grid (each must be on it,
+    to 1e-6 nm); RGB data take CIE 1931 XYZ (683 lm/W) then linear sRGB
+    (:mod:`skyfit.render.colour`).
+    """
+    lam = model_wavelengths
+    if obs.kind == "rgb":
+        xyz = spectral_to_xyz_matrix(lam)
+        return xyz @ torch.as_tensor(_srgb_matrix(), dtype=lam.dtype, device=lam.device).T
+    wl = obs.wavelengths.to(lam.dtype)
+    diff = (wl[None, :] - lam[:, None]).abs()
+    hit = diff < 1e-6
+    missing = ~hit.any(0)
+    if bool(missing.any()):
+        raise DataError(f"{obs.source}: wavelength(s) {wl[missing].tolist()} nm are not on the model grid")
+    return hit.to(lam.dtype)
+
+
+class FitProblem:
+    """Observations sharing one atmosphere, each with its own sun and nuisance values.
+
+    Args:
+        parameterisation: maps x to physical values and the atmosphere.
+        model: renderer settings.
+        observations: the data (converted to the base atmosphere's dtype and device).
+        loss: the loss of each observation's channels.
+        base_sun_distance_au: Earth-Sun distance the base atmosphere's solar spectrum is for;
+            an observation with a known distance d is scaled by (base / d)^2. [AU]
+    """
+
+    def __init__(self, parameterisation: Parameterisation, model: SkyModel, observations: Sequence[Observation],
+                 loss: Loss, base_sun_distance_au: float = 1.0):
+        atm = parameterisation.base
+        if len(observations) != parameterisation.n_observations:
+            raise FitError(f"{len(observations)} observations but the parameterisation expects {parameterisation.n_observations}")
+        self.param = parameterisation
+        self.model = model
+        self.loss = loss
+        self.observations = [o.to(atm.dtype, atm.device) for o in observations]
+        self.matrices = [channel_matrix(atm.wavelengths, o) for o in self.observations]
+        self.solar_scale = [
+            1.0 if o.sun_distance_au is None else (base_sun_distance_au / o.sun_distance_au) ** 2 for o in self.observations
+        ]
+        self.n_elements = sum(int(o.mask.sum()) * len(o.channels) for o in self.observations)
+        self.n_evaluations = 0
+
+    # -- forward ----------------------------------------------------------------
+    def sun_vectors(self, phys: dict, i: int) -> Tensor:
+        """Observation i's sun with its fitted offsets, shape (3,) or (N, 3)."""
+        o, nu = self.observations[i], self.param.nuisance(phys, i)
+        return zenith_azimuth_to_enu(o.sun_zenith + nu["sun_zenith_offset"], o.sun_azimuth + nu["sun_azimuth_offset"])
+
+    def spectra(self, phys: dict, atm: Atmosphere | None = None) -> list[Tensor]:
+        """Model spectral radiance for every used sample of each observation (N_i, W), no exposure."""
+        atm = self.param.atmosphere(phys) if atm is None else atm
+        out, renderers = [], {}
+        for i, o in enumerate(self.observations):
+            if o.altitude_m not in renderers:
+                renderers[o.altitude_m] = self.model.renderer(atm, o.altitude_m)
+            sun = self.sun_vectors(phys, i)
+            if sun.ndim == 2:
+                sun = sun[o.mask]
+            out.append(renderers[o.altitude_m](o.directions[o.mask], sun) * self.solar_scale[i])
+        return out
+
+    def predict_unscaled(self, phys: dict) -> list[Tensor]:
+        """Each observation's channels for its used samples, (N_i, C_i), exposure 1."""
+        return [s @ m for s, m in zip(self.spectra(phys), self.matrices)]
+
+    def predict(self, x: Tensor) -> list[Tensor]:
+        """Each observation's predicted channels for its used samples, (N_i, C_i)."""
+        phys = self.param.to_physical(x)
+        return [p * self.param.nuisance(phys, i)["exposure"] for i, p in enumerate(self.predict_unscaled(phys))]
+
+    def loss_from_predictions(self, preds: Sequence[Tensor], phys: dict) -> Tensor:
+        total = preds[0].new_zeros(())
+        for i, (p, o) in enumerate(zip(preds, self.observations)):
+            nu = self.param.nuisance(phys, i)
+            total = total + self.loss(p, o.values[o.mask], o.sigma[o.mask], noise_scale=nu["noise_scale"], reduction="sum")
+        return total / max(self.n_elements, 1)
+
+    def objective(self, x: Tensor) -> Tensor:
+        """Mean loss per used element (sample x channel), shape ()."""
+        self.n_evaluations += 1
+        return self.loss_from_predictions(self.predict(x), self.param.to_physical(x))
+
+    # -- exposure in closed form ----------------------------------------------------
+    def profile_exposure(self, x: Tensor) -> Tensor:
+        """x with every free exposure set to its weighted least-squares value for the rest of x.
+
+        k = sum(m o / s^2) / sum(m^2 / s^2) per observation (or pooled when shared): the
+        maximum-likelihood scale for Gaussian noise (:func:`skyfit.camera.fit_exposure_scale`).
+        A starting point for the optimiser, not a replacement for fitting it.
+        """
+        if "exposure" not in self.param.free:
+            return x
+        with torch.no_grad():
+            preds = self.predict_unscaled(self.param.to_physical(x))
+            num = [float((p * o.values[o.mask] / o.sigma[o.mask] ** 2).sum()) for p, o in zip(preds, self.observations)]
+            den = [float((p * p / o.sigma[o.mask] ** 2).sum()) for p, o in zip(preds, self.observations)]
+        per = self.param.is_per_observation("exposure")
+        ks = [n / d if d > 0 else 1.0 for n, d in zip(num, den)] if per else [sum(num) / sum(den) if sum(den) > 0 else 1.0]
+        ks = [k if k > 0 and math.isfinite(k) else 1.0 for k in ks]
+        vals = self.param.physical_dict(x)
+        vals["exposure"] = ks if per else ks[0]
+        return self.param.to_unconstrained({n: vals[n] for n in self.param.free}, x.dtype, x.device)
+
+    # -- metrics -------------------------------------------------------------------
+    def metrics(self, x: Tensor) -> dict:
+        """RMSE, mean CIE 1976 Delta E and loss, pooled and per observation (see :func:`observation_metrics`)."""
+        with torch.no_grad():
+            preds = self.predict(x)
+            loss = float(self.loss_from_predictions(preds, self.param.to_physical(x)))
+        per = [observation_metrics(p, o) for p, o in zip(preds, self.observations)]
+        return {**pool_metrics(per), "loss": loss, "per_observation": per}
+
+
+def observation_metrics(pred: Tensor, obs: Observation) -> dict:
+    """RMSE over used samples and channels, and mean CIE 1976 Delta E of one observation.
+
+    Spectral data: RMSE in mW/(m^2 sr nm) (Bruneton 2017 / Gałaj 2021's score when
+    the channels are 360-720 nm); XYZ by CIE 1931 from the spectra. RGB data: RMSE
+    in linear sRGB units; XYZ by the inverse sRGB matrix. Delta E: both sides scaled
+    by the measured 99th-percentile luminance (:func:`skyfit.render.delta_e_1976`).
+    """
+    from ..render.colour import delta_e_1976
+
+    meas = obs.values[obs.mask].detach().cpu().double()
+    mod = pred.detach().cpu().double()
+    if obs.kind == "spectral":
+        scale, units = 1e3, "mW/(m^2 sr nm)"
+        m_xyz = spectral_to_xyz_matrix(obs.wavelengths.detach().cpu().double())
+        xyz_meas, xyz_mod = meas @ m_xyz, mod @ m_xyz
+    else:
+        scale, units = 1.0, "linear sRGB (Y in cd/m^2)"
+        inv = torch.as_tensor(np.linalg.inv(_srgb_matrix()), dtype=torch.float64)
+        xyz_meas, xyz_mod = meas @ inv.T, mod @ inv.T
+    err = (mod - meas) * scale
+    rmse = float(torch.sqrt((err**2).mean()))
+    white = float(np.percentile(xyz_meas[:, 1].numpy(), 99))
+    de = delta_e_1976(xyz_mod.numpy(), xyz_meas.numpy(), white) if white > 0 else np.full(meas.shape[0], np.nan)
+    rel = (mod - meas) / torch.where(meas > 0, meas, torch.ones_like(meas))
+    return {
+        "name": obs.name, "rmse": rmse, "rmse_units": units, "delta_e": float(np.mean(de)),
+        "relative_rms": float(torch.sqrt((rel**2).mean())), "bias": float(err.mean()),
+        "n_samples": int(obs.mask.sum()), "n_elements": int(err.numel()), "_sse": float((err**2).sum()),
+        "_de_sum": float(np.sum(de)),
+    }
+
+
+def pool_metrics(per: Sequence[dict]) -> dict:
+    """Pooled RMSE and Delta E over observations (each element / sample counts once)."""
+    units = {p["rmse_units"] for p in per}
+    n_el = sum(p["n_elements"] for p in per)
+    n = sum(p["n_samples"] for p in per)
+    out = {
+        "rmse": math.sqrt(sum(p["_sse"] for p in per) / n_el) if len(units) == 1 else None,
+        "rmse_units": units.pop() if len(units) == 1 else "mixed (see per_observation)",
+        "delta_e": sum(p["_de_sum"] for p in per) / n,
+        "n_samples": n,
+    }
+    for p in per:
+        p.pop("_sse", None)
+        p.pop("_de_sum", None)
+    return out

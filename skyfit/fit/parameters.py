@@ -1,0 +1,417 @@
+"""Fit parameters: physical values <-> an unconstrained vector, and the Atmosphere they describe.
+
+Every parameter has a physical range that a smooth, invertible map enforces
+(STYLE.md: reparametrise, never clamp):
+
+==============  =====================================  =================================
+transform       physical value v of the free number x  for
+==============  =====================================  =================================
+``log``         v = ref * exp(x)                       positive scales, heights, beta
+``interval``    v = lo + (hi - lo) * sigmoid(x)        bounded: g in (-1, 1), ssa, albedo
+``linear``      v = ref * x                            unbounded angles (azimuth offset)
+==============  =====================================  =================================
+
+``ref`` puts x on a scale of order one (a Mie extinction of 1e-5 /m is x = 0),
+which is what Adam's step size and L-BFGS's first step assume.
+
+Names, units and meanings are listed in :data:`PARAMETERS` and in docs/fitting.md.
+*Shared* parameters describe the atmosphere; the *nuisance* parameters
+(``exposure``, ``sun_azimuth_offset``, ``sun_zenith_offset``, ``noise_scale``)
+describe the instrument and may take one value per observation in a joint fit.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..atmosphere import Atmosphere
+
+
+class FitError(ValueError):
+    """A fit that cannot be set up or run as asked (unknown parameter, value out of range...)."""
+
+
+TRANSFORMS = ("log", "interval", "linear")
+
+
+@dataclasses.dataclass(frozen=True)
+class ParameterSpec:
+    """One fit parameter.
+
+    Attributes:
+        name: the name used in configs, ``--free`` and RESULT.json.
+        unit: SI unit of the physical value.
+        transform: one of TRANSFORMS (module table).
+        ref: reference value of ``log`` and ``linear`` (x = 0 <-> v = ref for log; v = ref x for linear).
+        lo, hi: open interval of ``interval`` (and the range a user's value must lie in).
+        typical: physically plausible span used to spread multi-start points. [unit]
+        nuisance: an instrument parameter (may be per observation) rather than an atmospheric one.
+        description: one line for docs and reports.
+    """
+
+    name: str
+    unit: str
+    transform: str
+    ref: float = 1.0
+    lo: float = -math.inf
+    hi: float = math.inf
+    typical: tuple[float, float] = (1.0, 1.0)
+    nuisance: bool = False
+    description: str = ""
+
+    def forward(self, x: Tensor, hi: float | None = None) -> Tensor:
+        """Physical value of the unconstrained ``x`` (``hi`` overrides the upper bound)."""
+        if self.transform == "log":
+            return self.ref * torch.exp(x)
+        if self.transform == "interval":
+            top = self.hi if hi is None else hi
+            return self.lo + (top - self.lo) * torch.sigmoid(x)
+        return self.ref * x
+
+    def inverse(self, v: float, hi: float | None = None) -> float:
+        """Unconstrained value of the physical ``v``; FitError when v is outside the range."""
+        top = self.hi if hi is None else hi
+        if not math.isfinite(v):
+            raise FitError(f"{self.name} must be finite, got {v}")
+        if self.transform == "log":
+            if not v > 0:
+                raise FitError(f"{self.name} must be > 0 {self.unit}, got {v}")
+            return math.log(v / self.ref)
+        if self.transform == "interval":
+            if not self.lo < v < top:
+                raise FitError(f"{self.name} must lie in the open interval ({self.lo:g}, {top:g}) {self.unit}, got {v}")
+            u = (v - self.lo) / (top - self.lo)
+            return math.log(u) - math.log1p(-u)
+        return v / self.ref
+
+
+_DEG = math.pi / 180.0
+
+PARAMETERS: dict[str, ParameterSpec] = {
+    s.name: s
+    for s in (
+        ParameterSpec("rayleigh_scale", "1", "log", 1.0, 0.0, math.inf, (0.85, 1.15),
+                      description="factor on the config's Rayleigh scattering spectrum"),
+        ParameterSpec("rayleigh_scale_height", "m", "log", 8000.0, 0.0, math.inf, (6500.0, 9500.0),
+                      description="Rayleigh density scale height"),
+        ParameterSpec("mie_beta_550", "1/m", "log", 1e-5, 0.0, math.inf, (3e-6, 8e-5),
+                      description="sea-level aerosol extinction coefficient at 550 nm"),
+        ParameterSpec("mie_angstrom_alpha", "1", "interval", 1.0, -1.0, 4.0, (0.2, 1.8),
+                      description="Angstrom exponent: extinction ~ (lambda / 550 nm)^-alpha"),
+        ParameterSpec("mie_ssa", "1", "interval", 1.0, 0.0, 1.0, (0.75, 0.98),
+                      description="aerosol single-scattering albedo (grey)"),
+        ParameterSpec("mie_scale_height", "m", "log", 1200.0, 0.0, math.inf, (700.0, 2500.0),
+                      description="aerosol density scale height"),
+        ParameterSpec("mie_g", "1", "interval", 1.0, -1.0, 1.0, (0.55, 0.85),
+                      description="aerosol phase-function asymmetry"),
+        ParameterSpec("ground_albedo", "1", "interval", 1.0, 0.0, 1.0, (0.05, 0.35),
+                      description="grey Lambertian ground albedo (replaces the config's spectrum)"),
+        ParameterSpec("ground_albedo_scale", "1", "interval", 1.0, 0.0, math.inf, (0.6, 1.4),
+                      description="factor on the config's albedo spectrum, in (0, 1 / max albedo)"),
+        ParameterSpec("exposure", "1", "log", 1.0, 0.0, math.inf, (0.7, 1.4), nuisance=True,
+                      description="calibration scale: data = exposure x model (data units per W/(m^2 sr nm))"),
+        ParameterSpec("noise_scale", "1", "log", 1.0, 0.0, math.inf, (1.0, 1.0), nuisance=True,
+                      description="factor on the data's sigma (fitted, it adds log(noise_scale) per element)"),
+        ParameterSpec("sun_azimuth_offset", "rad", "linear", 10 * _DEG, -math.inf, math.inf, (-0.2, 0.2), nuisance=True,
+                      description="added to the sun azimuth (clockwise); = minus a camera up-azimuth offset"),
+        ParameterSpec("sun_zenith_offset", "rad", "interval", 1.0, -10 * _DEG, 10 * _DEG, (-0.02, 0.02), nuisance=True,
+                      description="added to the sun zenith angle, within +-10 degrees"),
+    )
+}
+"""Every fittable parameter by name (docs/fitting.md has the same table)."""
+
+NUISANCE: tuple[str, ...] = tuple(n for n, s in PARAMETERS.items() if s.nuisance)
+ATMOSPHERE_PARAMETERS: tuple[str, ...] = tuple(n for n, s in PARAMETERS.items() if not s.nuisance)
+DEFAULT_PER_OBSERVATION: tuple[str, ...] = ("exposure", "sun_azimuth_offset", "sun_zenith_offset")
+"""Nuisance parameters that take one value per observation unless the config says otherwise."""
+
+_NUISANCE_DEFAULTS = {"exposure": 1.0, "noise_scale": 1.0, "sun_azimuth_offset": 0.0, "sun_zenith_offset": 0.0}
+
+
+def check_names(names: Iterable[str], what: str = "free parameter") -> list[str]:
+    """Names as a list; FitError naming the unknown one and listing the valid names."""
+    out = []
+    for n in names:
+        if n not in PARAMETERS:
+            raise FitError(f"unknown {what} {n!r}; valid: {', '.join(PARAMETERS)}")
+        if n in out:
+            raise FitError(f"{what} {n!r} given twice")
+        out.append(n)
+    return out
+
+
+def mie_power_law(wavelengths: Tensor, extinction: Tensor) -> tuple[float, float]:
+    """Least-squares fit of ``log ext = log b + (-alpha) log(lambda / 550)``: (b at 550 nm [1/m], alpha [1]).
+
+    Exact for an Angstrom-law extinction (every shipped config). One wavelength gives alpha = 0.
+    """
+    lam = wavelengths.detach().cpu().double().numpy()
+    ext = extinction.detach().cpu().double().numpy()
+    if np.any(ext <= 0):
+        return 0.0, 0.0
+    if lam.size == 1:
+        return float(ext[0]), 0.0
+    xl = np.log(lam / 550.0)
+    slope, intercept = np.polyfit(xl, np.log(ext), 1)
+    return float(math.exp(intercept)), float(-slope)
+
+
+class Parameterisation:
+    """Maps an unconstrained vector x (P,) to physical parameters and to an :class:`Atmosphere`.
+
+    Args:
+        base: the atmosphere of the config (its spectra and its non-free values are kept).
+        free: names of the fitted parameters (see :data:`PARAMETERS`).
+        n_observations: number of observations in the fit.
+        per_observation: nuisance names that take one value per observation
+            (default :data:`DEFAULT_PER_OBSERVATION`; only those that are free or fixed
+            at per-observation values matter).
+        values: physical values overriding the defaults: starting points of free
+            parameters and fixed values of the others. A per-observation value may be a
+            sequence of length ``n_observations``. [SI]
+
+    Defaults come from ``base``: the Mie extinction at 550 nm and Angstrom exponent
+    from a power-law fit of its spectrum (:func:`mie_power_law`), ssa as the mean
+    scattering / extinction, grey albedo as the mean albedo; nuisance defaults are
+    exposure 1, offsets 0, noise_scale 1.
+
+    The vector layout is :attr:`names`: each shared free name once, each
+    per-observation free name as ``name[i]``.
+    """
+
+    def __init__(
+        self,
+        base: Atmosphere,
+        free: Sequence[str],
+        n_observations: int = 1,
+        per_observation: Sequence[str] | None = None,
+        values: Mapping[str, float | Sequence[float]] | None = None,
+    ):
+        self.base = base
+        self.free = check_names(free)
+        if n_observations < 1:
+            raise FitError(f"a fit needs at least one observation, got {n_observations}")
+        self.n_observations = int(n_observations)
+        per = DEFAULT_PER_OBSERVATION if per_observation is None else tuple(per_observation)
+        check_names(per, "per-observation parameter")
+        for n in per:
+            if not PARAMETERS[n].nuisance:
+                raise FitError(f"{n!r} describes the atmosphere, which observations share; per-observation "
+                               f"parameters must be among {', '.join(NUISANCE)}")
+        self.per_observation = tuple(per)
+        if "ground_albedo" in self.free and "ground_albedo_scale" in self.free:
+            raise FitError("free ground_albedo (grey) or ground_albedo_scale (of the config's spectrum), not both")
+
+        # Base spectral shapes: the fitted numbers act on them.
+        self._lam = base.wavelengths
+        b550, alpha0 = mie_power_law(base.wavelengths, base.mie_extinction)
+        self._mie_alpha0 = alpha0
+        if b550 > 0:
+            law = b550 * (base.wavelengths / 550.0) ** (-alpha0)
+            self._mie_shape = base.mie_extinction / law  # 1 for an Angstrom-law config
+        else:
+            self._mie_shape = torch.ones_like(base.mie_extinction)
+        ext = base.mie_extinction
+        ratio = torch.where(ext > 0, base.mie_scattering / torch.where(ext > 0, ext, torch.ones_like(ext)),
+                            torch.zeros_like(ext))
+        self._ssa_ratio = ratio
+        albedo_max = float(base.ground_albedo.max())
+        self._albedo_scale_hi = 1.0 / albedo_max if albedo_max > 0 else math.inf
+        self.defaults: dict[str, float] = {
+            "rayleigh_scale": 1.0,
+            "rayleigh_scale_height": float(base.rayleigh_scale_height),
+            "mie_beta_550": b550,
+            "mie_angstrom_alpha": alpha0,
+            "mie_ssa": float(ratio.mean()) if bool((ext > 0).any()) else 0.9,
+            "mie_scale_height": float(base.mie_scale_height),
+            "mie_g": float(base.mie_g),
+            "ground_albedo": float(base.ground_albedo.mean()),
+            "ground_albedo_scale": 1.0,
+            **_NUISANCE_DEFAULTS,
+        }
+        self.values: dict[str, float | list[float]] = dict(self.defaults)
+        self._overridden: set[str] = set()  # atmosphere parameters set away from the base (fixed overrides count)
+        for name, v in (values or {}).items():
+            self.set_value(name, v)
+
+        self.names: list[str] = []
+        self._slots: dict[str, list[int]] = {}
+        for n in self.free:
+            if self.is_per_observation(n):
+                self._slots[n] = list(range(len(self.names), len(self.names) + self.n_observations))
+                self.names += [f"{n}[{i}]" for i in range(self.n_observations)]
+            else:
+                self._slots[n] = [len(self.names)]
+                self.names.append(n)
+
+    # -- bookkeeping --------------------------------------------------------------
+    @property
+    def size(self) -> int:
+        """Length P of the unconstrained vector."""
+        return len(self.names)
+
+    def is_per_observation(self, name: str) -> bool:
+        return name in self.per_observation and PARAMETERS[name].nuisance
+
+    def _hi(self, name: str) -> float | None:
+        return self._albedo_scale_hi if name == "ground_albedo_scale" else None
+
+    def set_value(self, name: str, value) -> None:
+        """Set a physical value (start of a free parameter, or a fixed value); checks its range."""
+        check_names([name], "parameter")
+        spec = PARAMETERS[name]
+        if isinstance(value, (list, tuple, np.ndarray)):
+            vals = [float(v) for v in value]
+            if not self.is_per_observation(name):
+                if len(set(vals)) != 1:
+                    raise FitError(f"{name} is shared by all observations; got one value per observation {vals}")
+                vals = vals[:1]
+            elif len(vals) != self.n_observations:
+                raise FitError(f"{name}: {len(vals)} values for {self.n_observations} observation(s)")
+        else:
+            vals = [float(value)]
+        for v in vals:
+            spec.inverse(v, self._hi(name))  # range check
+        if self.is_per_observation(name) and len(vals) == 1:
+            vals = vals * self.n_observations
+        self.values[name] = vals if self.is_per_observation(name) else vals[0]
+        if not spec.nuisance:
+            self._overridden.add(name)
+
+    # -- vector <-> physical ------------------------------------------------------
+    def initial_vector(self, dtype=torch.float64, device="cpu") -> Tensor:
+        """x of the current values (:attr:`values`), shape (P,)."""
+        return self.to_unconstrained(self.values, dtype, device)
+
+    def to_unconstrained(self, values: Mapping[str, float | Sequence[float]], dtype=torch.float64, device="cpu") -> Tensor:
+        """x (P,) of physical values (missing free names take :attr:`values`)."""
+        x = torch.empty(self.size, dtype=dtype, device=device)
+        for n in self.free:
+            v = values.get(n, self.values[n])
+            spec = PARAMETERS[n]
+            slots = self._slots[n]
+            vs = list(v) if isinstance(v, (list, tuple, np.ndarray)) else [v] * len(slots)
+            if len(vs) != len(slots):
+                raise FitError(f"{n}: {len(vs)} values for {len(slots)} slot(s)")
+            for k, vi in zip(slots, vs):
+                x[k] = spec.inverse(float(vi), self._hi(n))
+        return x
+
+    def to_physical(self, x: Tensor) -> dict[str, Tensor]:
+        """Every parameter's physical value as a tensor (differentiable in x for the free ones).
+
+        Shared parameters have shape (); per-observation ones shape (n_observations,).
+        """
+        if x.shape != (self.size,):
+            raise FitError(f"parameter vector must have shape ({self.size},), got {tuple(x.shape)}")
+        out: dict[str, Tensor] = {}
+        for n, spec in PARAMETERS.items():
+            if n in self._slots:
+                v = spec.forward(x[self._slots[n]], self._hi(n))
+                out[n] = v if self.is_per_observation(n) else v.reshape(())
+            else:
+                v = self.values[n]
+                out[n] = torch.as_tensor(v, dtype=x.dtype, device=x.device)
+        return out
+
+    def physical_dict(self, x: Tensor) -> dict[str, float | list[float]]:
+        """Plain floats (lists for per-observation values) of every parameter, SI units."""
+        out = {}
+        with torch.no_grad():
+            for n, t in self.to_physical(x).items():
+                t = t.detach().cpu()
+                out[n] = t.tolist() if t.ndim else float(t)
+        return out
+
+    def free_dict(self, x: Tensor) -> dict[str, float | list[float]]:
+        """Physical values of the free parameters only."""
+        d = self.physical_dict(x)
+        return {n: d[n] for n in self.free}
+
+    # -- the atmosphere -----------------------------------------------------------
+    def atmosphere(self, phys: Mapping[str, Tensor]) -> Atmosphere:
+        """The Atmosphere of physical values ``phys`` (from :meth:`to_physical`), differentiably.
+
+        Parameters neither free nor overridden keep the base atmosphere's exact spectra.
+        """
+        b = self.base
+        dt, dev = b.dtype, b.device
+        T = lambda v: torch.as_tensor(v, dtype=dt, device=dev)  # noqa: E731
+        touched = set(self.free) | self._overridden
+        kw: dict = {}
+        if "rayleigh_scale" in touched:
+            kw["rayleigh_scattering"] = b.rayleigh_scattering * T(phys["rayleigh_scale"])
+        if "rayleigh_scale_height" in touched:
+            kw["rayleigh_scale_height"] = T(phys["rayleigh_scale_height"]).reshape(())
+        if "mie_scale_height" in touched:
+            kw["mie_scale_height"] = T(phys["mie_scale_height"]).reshape(())
+        if "mie_g" in touched:
+            kw["mie_g"] = T(phys["mie_g"]).reshape(())
+        if touched & {"mie_beta_550", "mie_angstrom_alpha", "mie_ssa"}:
+            ext = b.mie_extinction
+            if touched & {"mie_beta_550", "mie_angstrom_alpha"}:
+                # beta_550 (lambda / 550)^-alpha times the base's departure from a power law (1 for Angstrom configs)
+                ext = T(phys["mie_beta_550"]) * (self._lam / 550.0) ** (-T(phys["mie_angstrom_alpha"])) * self._mie_shape
+            scat = ext * (T(phys["mie_ssa"]) if "mie_ssa" in touched else self._ssa_ratio)
+            kw["mie_extinction"], kw["mie_scattering"] = ext, scat
+        if "ground_albedo" in touched and "ground_albedo_scale" in touched:
+            raise FitError("ground_albedo (grey) and ground_albedo_scale (of the config's spectrum) both set; use one")
+        if "ground_albedo" in touched:
+            kw["ground_albedo"] = T(phys["ground_albedo"]) * torch.ones_like(b.ground_albedo)
+        elif "ground_albedo_scale" in touched:
+            kw["ground_albedo"] = b.ground_albedo * T(phys["ground_albedo_scale"])
+        if not kw:
+            return b
+        try:
+            return b.replace(**kw)
+        except ValueError as e:  # cannot happen inside the transforms' ranges; name it if it does
+            raise FitError(f"parameters give an invalid atmosphere: {e}") from None
+
+    def derived(self, phys: Mapping[str, Tensor]) -> dict[str, float]:
+        """Derived quantities for reports: aerosol optical depth at 550 nm (beta_550 H_M), [1]."""
+        with torch.no_grad():
+            return {"mie_aod_550": float(phys["mie_beta_550"] * phys["mie_scale_height"])}
+
+    def nuisance(self, phys: Mapping[str, Tensor], i: int) -> dict[str, Tensor]:
+        """Observation ``i``'s nuisance values (shape ()) from :meth:`to_physical`'s dict."""
+        out = {}
+        for n in NUISANCE:
+            v = phys[n]
+            out[n] = v[i] if v.ndim else v
+        return out
+
+    def units(self) -> dict[str, str]:
+        return {n: s.unit for n, s in PARAMETERS.items()}
+
+    def spread_starts(self, n: int, generator: torch.Generator, dtype=torch.float64, device="cpu") -> list[Tensor]:
+        """``n`` start vectors: the current values, then a Latin-hypercube spread over each free
+        parameter's ``typical`` span (per-observation offsets start at their current value)."""
+        x0 = self.initial_vector(dtype, device)
+        starts = [x0]
+        if n <= 1:
+            return starts
+        m = n - 1
+        for k in range(m):
+            starts.append(x0.clone())
+        for name in self.free:
+            spec = PARAMETERS[name]
+            lo, hi = spec.typical
+            if name == "ground_albedo_scale":
+                hi = min(hi, 0.99 * self._albedo_scale_hi)
+            if lo == hi or name in ("sun_azimuth_offset", "sun_zenith_offset", "exposure"):
+                continue
+            perm = torch.randperm(m, generator=generator)
+            u = (perm.to(torch.float64) + torch.rand(m, generator=generator, dtype=torch.float64)) / m
+            for k in range(m):
+                if spec.transform == "log":
+                    v = math.exp(math.log(lo) + float(u[k]) * (math.log(hi) - math.log(lo)))
+                else:
+                    v = lo + float(u[k]) * (hi - lo)
+                for s in self._slots[name]:
+                    starts[k + 1][s] = spec.inverse(v, self._hi(name))
+        return starts

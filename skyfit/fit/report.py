@@ -1,0 +1,189 @@
+"""Fit reports: atomic JSON, residual maps of fisheye images, spectra and per-ring errors of scans.
+
+Every file is written to a temporary name beside its target and renamed into
+place when complete (CONTRACT.md: no partial output files).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .data import Observation
+
+
+def _json_default(o):
+    if isinstance(o, Tensor):
+        return o.detach().cpu().tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
+
+
+def _clean(o):
+    """NaN/Inf -> None, recursively (JSON has no NaN)."""
+    if isinstance(o, float):
+        return o if math.isfinite(o) else None
+    if isinstance(o, dict):
+        return {k: _clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_clean(v) for v in o]
+    return o
+
+
+def dumps(obj, indent: int | None = 2) -> str:
+    """JSON text of ``obj`` with tensors and arrays as lists and NaN as null."""
+    return json.dumps(_clean(json.loads(json.dumps(obj, default=_json_default))), indent=indent)
+
+
+def write_text_atomic(path: Path, text: str) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def _save_fig(fig, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.png", dir=path.parent)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=100)
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def luminance(values: Tensor, obs: Observation) -> np.ndarray:
+    """Luminance Y [cd/m^2] of (N, C) values of ``obs`` (CIE 1931 from spectra; sRGB inverse for RGB)."""
+    from ..render.colour import _srgb_matrix, spectral_to_xyz_matrix
+
+    v = values.detach().cpu().double()
+    if obs.kind == "spectral":
+        return (v @ spectral_to_xyz_matrix(obs.wavelengths.detach().cpu().double())[:, 1]).numpy()
+    inv = np.linalg.inv(_srgb_matrix())
+    return v.numpy() @ inv[1]
+
+
+def _sanitize(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+
+
+def plot_observation(obs: Observation, pred: Tensor, out_dir: Path, stem: str) -> list[str]:
+    """Plots of one observation vs the model; returns the written paths.
+
+    Fisheye images: measured and model luminance (log scale), relative luminance error and
+    the normalised residual (mean over channels of (model - data) / sigma) in image layout.
+    Kider scans: measured vs model spectrum per sample, and RMSE per ring / error vs sun angle.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    meas = obs.values[obs.mask].detach().cpu().double()
+    mod = pred.detach().cpu().double()
+    base = f"{stem}_{_sanitize(obs.name)}"
+    written = []
+    if "image_shape" in obs.metadata and "pixel_index" in obs.metadata:
+        h, w = obs.metadata["image_shape"]
+        idx = torch.as_tensor(obs.metadata["pixel_index"])[obs.mask].numpy()
+
+        def img(vals):
+            a = np.full(h * w, np.nan)
+            a[idx] = vals
+            return a.reshape(h, w)
+
+        y_m, y_p = luminance(meas, obs), luminance(mod, obs)
+        rel = (y_p - y_m) / np.where(y_m > 0, y_m, np.nan)
+        resid = ((mod - meas) / obs.sigma[obs.mask].detach().cpu().double()).mean(-1).numpy()
+        fig, axes = plt.subplots(2, 2, figsize=(9, 8))
+        lo = np.nanpercentile(np.log10(np.maximum(y_m, 1e-12)), 1)
+        hi = np.nanpercentile(np.log10(np.maximum(y_m, 1e-12)), 99.5)
+        for ax, data, title in ((axes[0, 0], y_m, "measured"), (axes[0, 1], y_p, "model")):
+            im = ax.imshow(img(np.log10(np.maximum(data, 1e-12))), cmap="inferno", vmin=lo, vmax=hi)
+            ax.set_title(f"{title}: log10 luminance [cd/m^2]")
+            fig.colorbar(im, ax=ax, fraction=0.046)
+        lim = max(float(np.nanpercentile(np.abs(rel), 99)), 1e-3)
+        im = axes[1, 0].imshow(img(rel * 100), cmap="RdBu_r", vmin=-lim * 100, vmax=lim * 100)
+        axes[1, 0].set_title("relative error (model - data) / data [%]")
+        fig.colorbar(im, ax=axes[1, 0], fraction=0.046)
+        lim = max(float(np.nanpercentile(np.abs(resid), 99)), 1e-3)
+        im = axes[1, 1].imshow(img(resid), cmap="RdBu_r", vmin=-lim, vmax=lim)
+        axes[1, 1].set_title("residual (model - data) / sigma, channel mean")
+        fig.colorbar(im, ax=axes[1, 1], fraction=0.046)
+        for ax in axes.flat:
+            ax.set_xticks([])
+            ax.set_yticks([])
+        fig.suptitle(f"{obs.name}  (North up, East left)")
+        fig.tight_layout()
+        written.append(str(_save_fig(fig, out_dir / f"{base}_maps.png")))
+    if obs.kind == "spectral" and "ring" in obs.metadata:
+        lam = obs.wavelengths.detach().cpu().numpy()
+        rings = torch.as_tensor(obs.metadata["ring"])[obs.mask].numpy()
+        n = meas.shape[0]
+        cols = int(math.ceil(math.sqrt(n)))
+        rows = int(math.ceil(n / cols))
+        fig, axes = plt.subplots(rows, cols, figsize=(cols * 1.6, rows * 1.3), sharex=True)
+        for k, ax in enumerate(np.atleast_1d(axes).flat):
+            if k >= n:
+                ax.axis("off")
+                continue
+            ax.plot(lam, meas[k].numpy() * 1e3, "k-", lw=0.8)
+            ax.plot(lam, mod[k].numpy() * 1e3, "r-", lw=0.8)
+            ax.set_title(f"#{k} r{rings[k]}", fontsize=6, pad=1)
+            ax.tick_params(labelsize=5)
+        fig.suptitle(f"{obs.name}: measured (black) vs model (red), mW/(m^2 sr nm) over nm", fontsize=9)
+        fig.tight_layout()
+        written.append(str(_save_fig(fig, out_dir / f"{base}_spectra.png")))
+
+        err = (mod - meas).numpy() * 1e3
+        rel = ((mod - meas) / meas).numpy()
+        fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
+        ids = sorted(set(rings.tolist()))
+        a1.bar([str(r) for r in ids], [float(np.sqrt(np.mean(err[rings == r] ** 2))) for r in ids], color="C0")
+        a1.set_xlabel("ring (0 = elevation 12°, 4 = zenith)")
+        a1.set_ylabel("RMSE [mW/(m^2 sr nm)]")
+        a1.set_title("RMSE per ring")
+        sun = obs.sun.detach().cpu().double()
+        sun = sun[obs.mask.cpu()] if sun.ndim == 2 else sun
+        ang = torch.rad2deg(torch.arccos(torch.clamp((obs.directions[obs.mask].detach().cpu().double() * sun).sum(-1), -1, 1)))
+        a2.scatter(ang.numpy(), rel.mean(-1) * 100, c=rings, cmap="viridis", s=12)
+        a2.axhline(0, color="k", lw=0.5)
+        a2.set_xlabel("angle to the sun [deg]")
+        a2.set_ylabel("mean relative error [%]")
+        a2.set_title("error vs sun angle (colour = ring)")
+        fig.tight_layout()
+        written.append(str(_save_fig(fig, out_dir / f"{base}_rings.png")))
+    return written
+
+
+def plot_all(observations: Sequence[Observation], preds: Sequence[Tensor], out_dir: Path, stem: str) -> list[str]:
+    paths = []
+    for o, p in zip(observations, preds):
+        paths += plot_observation(o, p, out_dir, stem)
+    return paths

@@ -1,0 +1,335 @@
+"""``skyfit fit`` and ``skyfit evaluate`` as plain functions (the CLI parses flags and reads the config).
+
+Settings come from, in order of precedence: command-line flags, the config's
+``fit:`` section, the defaults of :class:`FitSettings`. RESULT.json embeds the
+atmosphere config and the model settings, so ``evaluate`` needs only it and DATA.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import inspect
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from .data import DataError, Observation, expand_data_paths, observation_from_exr, observation_from_kider
+from .losses import make_loss
+from .model import FitProblem, SkyModel
+from .optimise import FitOptions, fit
+from .parameters import NUISANCE, PARAMETERS, FitError, Parameterisation, check_names
+from .report import dumps, plot_all, write_text_atomic
+
+DEFAULT_FREE = ("rayleigh_scale", "mie_beta_550", "mie_scale_height", "mie_g", "exposure")
+"""Free parameters when neither --free nor the config's fit.free says; Kider scans add sun_azimuth_offset."""
+DEFAULT_RGB_WAVELENGTHS = "400:700:20"
+"""Model grid for RGB data whose EXR header does not give the grid it was rendered on [nm]."""
+RESULT_VERSION = 1
+
+
+@dataclasses.dataclass
+class FitSettings:
+    """What ``skyfit fit`` does; each field may be set in the config's ``fit:`` section or by a flag."""
+
+    free: list[str] | None = None
+    per_observation: list[str] | None = None
+    initial: dict = dataclasses.field(default_factory=dict)
+    loss: str = "squared"
+    integrator: str = "taylor"
+    orders: int = 1
+    view_samples: int = 32
+    rule: str = "trapezoid"
+    starts: int = 3
+    seed: int = 0
+    adam_steps: int = 25
+    max_iter: int = 100
+    grad_tol: float = 1e-7
+    rel_tol: float = 1e-10
+    wavelengths: str | None = None
+    min_elevation_deg: float = 0.0
+    sun_disc_deg: float = 2.0
+    saturation: float | None = None
+    max_samples: int | None = None
+    sigma_relative: float = 0.01
+    bin_nm: float = 10.0
+    per_sample_sun: bool = True
+    dtype: str = "float64"
+
+
+FIT_SECTION_KEYS = frozenset(f.name for f in dataclasses.fields(FitSettings))
+
+
+def fit_settings(section: dict | None, overrides: dict | None = None) -> FitSettings:
+    """Merge the config's ``fit:`` section and flag overrides (None values are ignored)."""
+    section = dict(section or {})
+    if not isinstance(section, dict):
+        raise FitError(f"config section 'fit' must be a mapping, got {section!r}")
+    unknown = set(section) - FIT_SECTION_KEYS
+    if unknown:
+        raise FitError(f"unknown key(s) {sorted(unknown)} in config section 'fit'; known: {sorted(FIT_SECTION_KEYS)}")
+    merged = {**section, **{k: v for k, v in (overrides or {}).items() if v is not None}}
+    for key in ("free", "per_observation"):
+        v = merged.get(key)
+        if isinstance(v, str):
+            merged[key] = [s.strip() for s in v.split(",") if s.strip()]
+    s = FitSettings(**merged)
+    if s.free is not None:
+        check_names(s.free)
+    if s.per_observation is not None:
+        check_names(s.per_observation, "per-observation parameter")
+    if not isinstance(s.initial, dict):
+        raise FitError(f"fit.initial must map parameter names to values, got {s.initial!r}")
+    check_names(list(s.initial), "parameter in fit.initial")
+    if s.orders < 1:
+        raise FitError(f"orders must be >= 1, got {s.orders}")
+    if s.view_samples < 1:
+        raise FitError(f"view_samples must be >= 1, got {s.view_samples}")
+    if s.max_samples is not None and s.max_samples < 1:
+        raise FitError(f"max_samples must be >= 1, got {s.max_samples}")
+    if s.dtype not in ("float32", "float64"):
+        raise FitError(f"dtype must be float32 or float64, got {s.dtype!r}")
+    return s
+
+
+def _integrator(spec: str | dict):
+    from ..transmittance import integrator_class, make_integrator
+
+    if isinstance(spec, dict):
+        d = dict(spec)
+        name = d.pop("name", None)
+        if name is None:
+            raise FitError("integrator settings lack a name")
+        accepted = set(inspect.signature(integrator_class(name).__init__).parameters) - {"self"}
+        return make_integrator(name, **{k: v for k, v in d.items() if k in accepted})
+    from ..cli import parse_integrator
+
+    return parse_integrator(str(spec))
+
+
+def _load(data: Sequence[str | Path], s: FitSettings, kider_site: dict | None, max_samples: int | None) -> list[Observation]:
+    dtype = torch.float64 if s.dtype == "float64" else torch.float32
+    obs = []
+    for kind, p in expand_data_paths(data):
+        if kind == "exr":
+            obs.append(observation_from_exr(
+                p, sigma_relative=s.sigma_relative, min_elevation_deg=s.min_elevation_deg, sun_disc_deg=s.sun_disc_deg,
+                saturation=s.saturation, max_samples=max_samples, dtype=dtype))
+        else:
+            obs.append(observation_from_kider(p, bin_nm=s.bin_nm, per_sample_sun=s.per_sample_sun, dtype=dtype,
+                                              **(kider_site or {})))
+    return obs
+
+
+def model_wavelengths(observations: Sequence[Observation], wavelengths: str | None) -> np.ndarray:
+    """The grid the atmosphere is built on: every spectral channel, plus a grid for RGB data."""
+    from ..cli import parse_wavelengths
+
+    grid: set[float] = set()
+    rgb = [o for o in observations if o.kind == "rgb"]
+    if rgb:
+        if wavelengths is not None:
+            grid |= set(parse_wavelengths(wavelengths).tolist())
+        else:
+            meta = next((o.metadata.get("model_wavelengths_nm") for o in rgb if o.metadata.get("model_wavelengths_nm")), None)
+            grid |= set(float(v) for v in meta) if meta else set(parse_wavelengths(DEFAULT_RGB_WAVELENGTHS).tolist())
+    for o in observations:
+        if o.kind == "spectral":
+            grid |= set(float(v) for v in o.wavelengths.cpu().tolist())
+    return np.array(sorted(grid))
+
+
+def _base_atmosphere(config: dict, lam: np.ndarray, observations: Sequence[Observation], dtype):
+    """Base atmosphere from the config (without its ``fit`` section) and its Earth-Sun distance [AU]."""
+    from ..atmosphere import atmosphere_from_config
+
+    cfg = {k: v for k, v in copy.deepcopy(config).items() if k != "fit"}
+    sun = cfg.setdefault("sun", {}) or {}
+    cfg["sun"] = sun
+    bands = {o.band_nm for o in observations if o.kind == "spectral" and o.band_nm is not None}
+    if "bandwidth_nm" not in sun and len(bands) == 1:
+        sun["bandwidth_nm"] = bands.pop()  # the data's band average, on the solar spectrum too
+    atm = atmosphere_from_config(cfg, lam, dtype=dtype)
+    return atm, float(sun.get("distance_au", 1.0))
+
+
+def _initial_values(s: FitSettings, observations: Sequence[Observation], free: Sequence[str], per: Sequence[str]) -> dict:
+    init = dict(s.initial)
+    if "sun_azimuth_offset" in free and "sun_azimuth_offset" not in init:
+        guesses = [o.metadata.get("azimuth_offset_guess_rad", 0.0) for o in observations]
+        if any(guesses):
+            init["sun_azimuth_offset"] = guesses if "sun_azimuth_offset" in per else float(np.mean(guesses))
+    return init
+
+
+def _model(s: FitSettings) -> SkyModel:
+    return SkyModel(_integrator(s.integrator), orders=s.orders, view_samples=s.view_samples, rule=s.rule)
+
+
+def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overrides: dict | None = None,
+            config_source: str = "", kider_site: dict | None = None, plots: bool = True, progress: bool = False) -> dict:
+    """Fit DATA, write RESULT.json (and plots beside it), return the result dict.
+
+    Args:
+        data: .exr files, Kider capture folders, or folders of either (a joint fit when several).
+        config: the atmosphere config dict, optionally with a ``fit:`` section (:class:`FitSettings`).
+        out: RESULT.json path.
+        overrides: flag values overriding the config's ``fit`` section (None = not given).
+        config_source: where the config came from (for the report).
+        kider_site: latitude / longitude / elevation / utc_offset_hours for Kider folders.
+        plots: write PNG plots next to ``out``.
+        progress: tqdm progress bar on stderr.
+    """
+    t0 = time.perf_counter()
+    out = Path(out)
+    if out.suffix.lower() != ".json":
+        raise FitError(f"--out must name a .json file, got {out}")
+    if not isinstance(config, dict):
+        raise FitError(f"config {config_source}: must be a mapping")
+    s = fit_settings(config.get("fit"), overrides)
+    loss = make_loss(s.loss)
+    model = _model(s)
+    if model.orders != 1:
+        raise FitError(f"orders={model.orders}: only single scattering (orders 1) is wired into the renderer so far")
+    observations = _load(data, s, kider_site, s.max_samples)
+    kinds = {o.kind for o in observations}
+    free = list(s.free) if s.free is not None else list(DEFAULT_FREE) + (
+        ["sun_azimuth_offset"] if any("ring" in o.metadata for o in observations) else [])
+    per = s.per_observation
+    per_eff = per if per is not None else [n for n in NUISANCE if n != "noise_scale"]
+    dtype = torch.float64 if s.dtype == "float64" else torch.float32
+    lam = model_wavelengths(observations, s.wavelengths)
+    base, base_dist = _base_atmosphere(config, lam, observations, dtype)
+    param = Parameterisation(base, free, len(observations), per, _initial_values(s, observations, free, per_eff))
+    problem = FitProblem(param, model, observations, loss, base_sun_distance_au=base_dist)
+    options = FitOptions(starts=s.starts, seed=s.seed, adam_steps=s.adam_steps, max_iter=s.max_iter,
+                         grad_tol=s.grad_tol, rel_tol=s.rel_tol, progress=progress)
+    res = fit(problem, options)
+    metrics = problem.metrics(res.x)
+    phys = param.to_physical(res.x)
+    result = {
+        "skyfit_result": RESULT_VERSION,
+        "command": "fit",
+        "parameters": res.parameters,
+        "units": param.units(),
+        "derived": param.derived(phys),
+        "free": res.free,
+        "per_observation": [n for n in param.per_observation],
+        "fitted_vector": {n: float(v) for n, v in zip(param.names, res.x.tolist())},
+        "integrator": {**model.integrator.settings(), **model.settings()},
+        "model": {**model.settings(), "wavelengths_nm": lam.tolist(), "base_sun_distance_au": base_dist,
+                  "dtype": s.dtype, "kinds": sorted(kinds)},
+        "loss": loss.settings(),
+        "metrics": metrics,
+        "data": [o.summary() for o in observations],
+        "convergence": {**res.convergence, "starts": res.starts},
+        "settings": dataclasses.asdict(s),
+        "config": {k: v for k, v in config.items() if k != "fit"},
+        "config_source": config_source,
+        "seconds": time.perf_counter() - t0,
+    }
+    if plots:
+        with torch.no_grad():
+            preds = problem.predict(res.x)
+        result["plots"] = plot_all(problem.observations, preds, out.parent, out.stem)
+    result["seconds"] = time.perf_counter() - t0
+    write_text_atomic(out, dumps(result))
+    return result
+
+
+# -- evaluate -----------------------------------------------------------------------------------
+REQUIRED_RESULT_KEYS = ("parameters", "free", "integrator", "config", "model")
+
+
+def read_result(path: str | Path) -> dict:
+    """A RESULT.json written by :func:`run_fit`; FitError naming the file when it is not one."""
+    p = Path(path)
+    if not p.is_file():
+        raise FitError(f"result file not found: {p}")
+    try:
+        res = json.loads(p.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise FitError(f"{p}: not a readable JSON result ({type(e).__name__}: {e})".splitlines()[0]) from None
+    if not isinstance(res, dict):
+        raise FitError(f"{p}: a RESULT.json must hold a JSON object")
+    missing = [k for k in REQUIRED_RESULT_KEYS if k not in res]
+    if missing:
+        raise FitError(f"{p}: not a skyfit fit result (missing {', '.join(missing)})")
+    if not isinstance(res["parameters"], dict) or not isinstance(res["config"], dict) or not isinstance(res["model"], dict):
+        raise FitError(f"{p}: malformed result (parameters, config and model must be objects)")
+    unknown = [k for k in res["parameters"] if k not in PARAMETERS]
+    if unknown:
+        raise FitError(f"{p}: unknown parameter(s) {unknown}")
+    return res
+
+
+def _nuisance_for(res: dict, obs: Observation, name: str):
+    """A fitted nuisance value for ``obs``: its own if it was fitted, else the mean over the fit's observations."""
+    v = res["parameters"].get(name)
+    if v is None:
+        return None
+    if not isinstance(v, list):
+        return float(v)
+    for d, vi in zip(res.get("data", []), v):
+        if isinstance(d, dict) and d.get("source") == obs.source:
+            return float(vi)
+    if name == "exposure":
+        return float(np.exp(np.mean(np.log(v))))
+    return float(np.mean(v))
+
+
+def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_nuisance: bool = False,
+                 kider_site: dict | None = None, progress: bool = False) -> dict:
+    """How well a fitted atmosphere predicts DATA, with DATA's own sun position (CONTRACT.md).
+
+    Without ``refit_nuisance`` the fitted exposure and offsets are used (the observation's own
+    when it was among the fitted data, else their mean). With it, the atmosphere stays fixed
+    while ``exposure`` and ``sun_azimuth_offset`` are re-estimated per observation.
+    """
+    res = read_result(result_path)
+    try:
+        s = fit_settings(res.get("settings"), None)
+        s = dataclasses.replace(s, max_samples=None)  # evaluate every usable sample
+        model = SkyModel(_integrator(res["integrator"]), orders=int(res["model"].get("orders", 1)),
+                         view_samples=int(res["model"].get("view_samples", 32)), rule=res["model"].get("rule", "trapezoid"),
+                         ground=bool(res["model"].get("ground", True)))
+        loss = make_loss(res.get("loss", {}).get("name", "squared") if isinstance(res.get("loss"), dict) else "squared")
+    except (TypeError, KeyError) as e:
+        raise FitError(f"{result_path}: malformed result ({e})") from None
+    observations = _load(data, s, kider_site, None)
+    dtype = torch.float64 if s.dtype == "float64" else torch.float32
+    lam = model_wavelengths(observations, s.wavelengths)
+    try:
+        base, base_dist = _base_atmosphere(res["config"], lam, observations, dtype)
+    except ValueError as e:
+        raise FitError(f"{result_path}: its config cannot be rebuilt: {e}") from None
+    # The atmosphere moves away from the config only in the parameters that were fitted or set in fit.initial.
+    fitted = set(res.get("free", [])) | set((res.get("settings") or {}).get("initial", {}) or {})
+    atm_values = {n: v for n, v in res["parameters"].items() if not PARAMETERS[n].nuisance and n in fitted}
+    nuis_values: dict[str, Any] = {}
+    for n in NUISANCE:
+        vals = [_nuisance_for(res, o, n) for o in observations]
+        if all(v is not None for v in vals):
+            nuis_values[n] = vals if n != "noise_scale" else vals[0]
+    free = ["exposure", "sun_azimuth_offset"] if refit_nuisance else []
+    per = [n for n in NUISANCE if n != "noise_scale"]
+    param = Parameterisation(base, free, len(observations), per, {**atm_values, **nuis_values})
+    problem = FitProblem(param, model, observations, loss, base_sun_distance_au=base_dist)
+    conv = None
+    if refit_nuisance:
+        r = fit(problem, FitOptions(starts=1, adam_steps=10, max_iter=60, progress=progress))
+        x, conv = r.x, r.convergence
+    else:
+        x = param.initial_vector(dtype)
+    metrics = problem.metrics(x)
+    phys = param.physical_dict(x)
+    return {
+        "rmse": metrics["rmse"], "rmse_units": metrics["rmse_units"], "delta_e": metrics["delta_e"],
+        "n_samples": metrics["n_samples"], "loss": metrics["loss"], "per_observation": metrics["per_observation"],
+        "refit_nuisance": refit_nuisance, "nuisance": {n: phys[n] for n in ("exposure", "sun_azimuth_offset", "sun_zenith_offset")},
+        "convergence": conv, "result": str(result_path), "data": [o.summary() for o in observations],
+    }
