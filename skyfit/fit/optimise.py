@@ -48,7 +48,7 @@ class FitOptions:
 
     starts: int = 3
     seed: int = 0
-    adam_steps: int = 25
+    adam_steps: int = 10
     adam_lr: float = 0.05
     max_iter: int = 100
     grad_tol: float = 1e-7
@@ -96,7 +96,7 @@ def _value_and_grad(problem: FitProblem, x: Tensor) -> tuple[float, Tensor]:
     xg = x.detach().clone().requires_grad_(True)
     loss = problem.objective(xg)
     (g,) = torch.autograd.grad(loss, xg)
-    return float(loss), g
+    return float(loss.detach()), g
 
 
 def _run_start(problem: FitProblem, x0: Tensor, opt: FitOptions, bar, label: str) -> dict:

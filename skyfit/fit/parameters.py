@@ -320,12 +320,13 @@ class Parameterisation:
         return out
 
     def physical_dict(self, x: Tensor) -> dict[str, float | list[float]]:
-        """Plain floats (lists for per-observation values) of every parameter, SI units."""
+        """Plain floats of every parameter, SI units; per-observation ones as lists when there are several observations."""
         out = {}
         with torch.no_grad():
             for n, t in self.to_physical(x).items():
                 t = t.detach().cpu()
-                out[n] = t.tolist() if t.ndim else float(t)
+                # per-observation values as lists (one per observation); a single observation's as a number
+                out[n] = t.tolist() if t.ndim and self.n_observations > 1 else float(t.reshape(-1)[0]) if t.ndim else float(t)
         return out
 
     def free_dict(self, x: Tensor) -> dict[str, float | list[float]]:

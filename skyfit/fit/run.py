@@ -46,7 +46,7 @@ class FitSettings:
     rule: str = "trapezoid"
     starts: int = 3
     seed: int = 0
-    adam_steps: int = 25
+    adam_steps: int = 10
     max_iter: int = 100
     grad_tol: float = 1e-7
     rel_tol: float = 1e-10
