@@ -269,6 +269,122 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def _read_fit_config(path_or_name: str) -> tuple[dict, str]:
+    """A fit config (atmosphere config plus an optional ``fit:`` section) by path or shipped name."""
+    from .atmosphere import load_yaml
+
+    p = Path(path_or_name)
+    if not p.exists() and not p.suffix:
+        shipped = Path(__file__).resolve().parent / "configs" / f"{path_or_name}.yaml"
+        if shipped.is_file():
+            p = shipped
+    return load_yaml(p), str(p)
+
+
+def _kider_site(args) -> dict:
+    site: dict = {}
+    if args.location:
+        from .camera import parse_location
+
+        site["latitude"], site["longitude"], site["elevation"] = parse_location(args.location)
+    if args.timezone is not None:
+        if not (math.isfinite(args.timezone) and -14 <= args.timezone <= 14):
+            raise UserError(f"--timezone must be a UTC offset in hours in [-14, 14], got {args.timezone}")
+        site["utc_offset_hours"] = args.timezone
+    return site
+
+
+def _progress(args) -> bool:
+    return (sys.stderr.isatty() and not args.json) if args.progress is None else bool(args.progress)
+
+
+def cmd_fit(args) -> int:
+    from .atmosphere import ConfigError
+    from .fit.run import run_fit
+
+    cfg, source = _read_fit_config(args.config)
+    overrides = {
+        "free": args.free, "per_observation": args.per_observation, "integrator": args.integrator, "orders": args.orders,
+        "view_samples": args.view_samples, "rule": args.rule, "loss": args.loss, "starts": args.starts,
+        "max_iter": args.max_iter, "adam_steps": args.adam_steps, "seed": args.seed, "wavelengths": args.wavelengths,
+        "min_elevation_deg": args.min_elevation, "sun_disc_deg": args.sun_mask, "max_samples": args.max_samples,
+        "sigma_relative": args.sigma_relative,
+    }
+    try:
+        res = run_fit(args.data, cfg, args.out, overrides=overrides, config_source=source, kider_site=_kider_site(args),
+                      plots=not args.no_plots, progress=_progress(args))
+    except ConfigError as e:
+        raise ConfigError(f"config {source}: {e}") from None
+    m, c = res["metrics"], res["convergence"]
+    summary = {"out": str(args.out), "free": {n: res["parameters"][n] for n in res["free"]}, "loss": m["loss"],
+               "rmse": m["rmse"], "rmse_units": m["rmse_units"], "delta_e": m["delta_e"], "n_samples": m["n_samples"],
+               "converged": c["converged"], "reason": c["reason"], "seconds": round(res["seconds"], 3),
+               "plots": res.get("plots", [])}
+    if args.json:
+        from .fit.report import dumps
+
+        print(dumps(summary, indent=None))
+    else:
+        for n, v in summary["free"].items():
+            print(f"{n:22s} {v}")
+        print(f"loss {m['loss']:.6g}  rmse {m['rmse']:.4g} {m['rmse_units']}  delta_e {m['delta_e']:.3g}  "
+              f"({m['n_samples']} samples; {c['reason']} after {c['iterations']} L-BFGS iterations, {res['seconds']:.1f} s)")
+        print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    from .fit.report import dumps
+    from .fit.run import run_evaluate
+
+    res = run_evaluate(args.result, args.data, refit_nuisance=args.refit_nuisance, kider_site=_kider_site(args),
+                       progress=_progress(args))
+    if args.json:
+        print(dumps(res, indent=None))
+    else:
+        print(f"rmse {res['rmse']:.4g} {res['rmse_units']}  delta_e {res['delta_e']:.3g}  ({res['n_samples']} samples)")
+    return 0
+
+
+def _add_fit_parsers(sub) -> None:
+    f = sub.add_parser("fit", help="fit an atmosphere to fisheye EXR images or Kider captures (docs/fitting.md)")
+    f.add_argument("data", nargs="+", help="an .exr fisheye, a Kider capture folder, or a folder of either (several: joint fit)")
+    f.add_argument("--config", required=True, help="atmosphere config YAML with an optional fit: section (or a shipped name)")
+    f.add_argument("--out", required=True, help="RESULT.json (plots are written beside it)")
+    f.add_argument("--free", help="comma list of fitted parameters (docs/fitting.md), e.g. mie_beta_550,mie_g,exposure")
+    f.add_argument("--per-observation", help="comma list of nuisance parameters with one value per observation")
+    f.add_argument("--integrator", help="NAME[:key=value,...] (default taylor)")
+    f.add_argument("--orders", type=int, help="scattering orders (1 = single scattering, the default)")
+    f.add_argument("--view-samples", type=int, help="samples of the view-ray integral (default 32)")
+    f.add_argument("--rule", help="outer quadrature rule (default trapezoid)")
+    f.add_argument("--loss", help="squared, log, relative, huber, cauchy [:residual=...,delta=...] (default squared)")
+    f.add_argument("--starts", type=int, help="multi-start points (default 3)")
+    f.add_argument("--max-iter", type=int, help="L-BFGS iterations per start (default 100)")
+    f.add_argument("--adam-steps", type=int, help="Adam warm-start steps per start (default 10)")
+    f.add_argument("--seed", type=int, help="seed of the multi-start spread (default 0)")
+    f.add_argument("--wavelengths", help="model grid for RGB data, START:STOP:STEP or a list [nm]")
+    f.add_argument("--min-elevation", type=float, help="horizon mask: lowest elevation used [deg] (default 0)")
+    f.add_argument("--sun-mask", type=float, help="images: radius of the disc around the sun left out [deg] (default 2)")
+    f.add_argument("--max-samples", type=int, help="images: use every k-th pixel so that at most this many remain")
+    f.add_argument("--sigma-relative", type=float, help="images: relative noise when the header has none (default 0.01)")
+    f.add_argument("--location", help="Kider data: LAT,LON[,ELEV] (default: the Kider site)")
+    f.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
+    f.add_argument("--no-plots", action="store_true", help="do not write PNG plots")
+    f.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar (default: on a terminal)")
+    f.add_argument("--json", action="store_true")
+    f.set_defaults(func=cmd_fit)
+
+    e = sub.add_parser("evaluate", help="how well a fitted atmosphere predicts DATA (its own sun position)")
+    e.add_argument("result", help="RESULT.json of skyfit fit")
+    e.add_argument("data", nargs="+", help="an .exr fisheye, a Kider capture folder, or a folder of either")
+    e.add_argument("--refit-nuisance", action="store_true", help="re-estimate exposure and azimuth offset on DATA")
+    e.add_argument("--location", help="Kider data: LAT,LON[,ELEV] (default: the Kider site)")
+    e.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
+    e.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar (default: on a terminal)")
+    e.add_argument("--json", action="store_true")
+    e.set_defaults(func=cmd_evaluate)
+
+
 def cmd_bench(args) -> int:
     from .bench import run_bench
 
@@ -325,6 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--quick", action="store_true")
     d.add_argument("--json", action="store_true")
     d.set_defaults(func=cmd_demo)
+    _add_fit_parsers(sub)
 
     b = sub.add_parser("bench", help="speed/accuracy table of the transmittance integrators")
     b.add_argument("--out", default="bench_out")
