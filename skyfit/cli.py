@@ -392,6 +392,61 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def _write_json_atomic(path: Path, data: dict) -> None:
+    """Write ``data`` as strict JSON (NaN refused) to a temporary file beside ``path``, then rename it."""
+    import os
+    import tempfile
+
+    text = json.dumps(data, indent=2, allow_nan=False) + "\n"
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def cmd_calibrate_integrator(args) -> int:
+    import torch
+
+    from . import __version__
+    from .atmosphere import load_atmosphere
+    from .bench import machine_info
+    from .fit.integrator_calibration import CALIBRATE_QUICK, calibrate_integrators
+
+    out = Path(args.out)
+    if out.suffix.lower() != ".json":
+        raise UserError(f"--out must name a .json file, got {out}")
+    if not out.parent.is_dir():
+        raise UserError(f"--out: directory {out.parent} does not exist")
+    for flag, v in (("--tolerance", args.tolerance), ("--transmittance-tolerance", args.transmittance_tolerance)):
+        if not 0.0 < v < 1.0:
+            raise UserError(f"{flag} must be in (0, 1), got {v}")
+    lam = parse_wavelengths(args.wavelengths)
+    atm = load_atmosphere(args.config, lam, dtype=torch.float64)
+    settings = dict(CALIBRATE_QUICK) if args.quick else {}
+    t0 = time.perf_counter()
+    res = calibrate_integrators(atm, tolerance=args.tolerance, transmittance_tolerance=args.transmittance_tolerance,
+                                metric=args.metric, d_spacing=args.d_spacing, view_rule=args.view_rule,
+                                spline_kind=args.spline_kind, **settings)
+    res = {"atmosphere": res.pop("atmosphere"), "config": str(args.config), **res}
+    res["run"] = {"seconds": round(time.perf_counter() - t0, 2), "quick": bool(args.quick), "skyfit_version": __version__,
+                  "machine": machine_info("cpu")}
+    _write_json_atomic(out, res)
+    t = res["taylor"]
+    spline = res.get("spline", {})
+    summary = {"out": str(out), "a": t["a"], "b": t["b"], "taylor_error": t["error"], "default_error": t["default_error"],
+               "spline": [spline.get("height_points"), spline.get("distance_points")], "view_samples": res["view_samples"]}
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"wrote {out}: taylor a={t['a']:.4f} b={t['b']:.4f} error {t['error']:.3g} (default 0.45/0.45: {t['default_error']:.3g}); "
+              f"spline {summary['spline'][0]}x{summary['spline'][1]}; view samples {res['view_samples']} ({res['run']['seconds']:.1f} s)")
+    return 0
+
+
 # -- entry point ---------------------------------------------------------------
 class _Parser(argparse.ArgumentParser):
     """argparse with CONTRACT.md's error form: one line on stderr, exit status 2 (no usage block)."""
@@ -449,6 +504,20 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--device", default="cpu")
     b.add_argument("--json", action="store_true")
     b.set_defaults(func=cmd_bench)
+
+    c = sub.add_parser("calibrate-integrator", help="fit Taylor a, b; pick spline grid and view samples for an atmosphere")
+    c.add_argument("config", help="atmosphere config YAML (or a shipped name: earth, mars, ...)")
+    c.add_argument("--out", required=True, help="output .json file (docs/integrator_calibration.md)")
+    c.add_argument("--tolerance", type=float, default=1e-3, help="relative single-scattering radiance tolerance (default 1e-3)")
+    c.add_argument("--transmittance-tolerance", type=float, default=1e-3, help="spline transmittance tolerance (default 1e-3)")
+    c.add_argument("--metric", choices=("transmittance", "column", "radiance"), default="transmittance", help="Taylor fit error metric (docs/integrator_calibration.md)")
+    c.add_argument("--d-spacing", choices=("view", "paper"), default="view", help="line distances of the (d, t) domain")
+    c.add_argument("--view-rule", choices=RULES, default="trapezoid", help="outer quadrature rule of the view samples")
+    c.add_argument("--spline-kind", default="natural_cubic", help="spline kind of the grid search")
+    c.add_argument("--wavelengths", default=DEFAULT_WAVELENGTHS, help="START:STOP:STEP or comma list [nm]")
+    c.add_argument("--quick", action="store_true", help="coarser domain, fewer rays and candidates (seconds, for CI)")
+    c.add_argument("--json", action="store_true")
+    c.set_defaults(func=cmd_calibrate_integrator)
     return p
 
 
