@@ -1,0 +1,721 @@
+"""Precomputed multiple scattering (Bruneton & Neyret 2008, Algorithm 4.1), differentiable in torch.
+
+Tables (parametrisation in :mod:`.bruneton_tables`, after Bruneton's 2017 reference
+implementation):
+
+=============================  ======================  ==========================================
+table                          shape                   content
+=============================  ======================  ==========================================
+``transmittance_columns``      (64 r, 256 mu, 3)       optical length to the top of the atmosphere
+                                                       of the Rayleigh, Mie and ozone profiles [m]
+``direct_irradiance``          (16 r, 64 mu_s, W)      Delta E after 0 bounces [W/(m^2 nm)]
+``irradiance``                 (16 r, 64 mu_s, W)      sum of Delta E, orders 1..N-1 [W/(m^2 nm)]
+``single_rayleigh``/``_mie``   (32, 128, 32, 8, W)     single scattering without phase function
+                                                       [W/(m^2 nm)]
+``multiple``                   (32, 128, 32, 8, W)     sum of Delta S, orders 2..N [W/(m^2 sr nm)]
+=============================  ======================  ==========================================
+
+Choices, with their reasons:
+
+- *Transmittance as optical length.* 2017 stores T(r, mu) per wavelength; we store the
+  three columns (Rayleigh, Mie, ozone tent), so ``T = exp(-columns @ [beta_R; beta_M^e;
+  beta_O3])``. Lookups cost the same for any W, interpolation is log-linear in T, and the
+  extinction coefficients enter exactly (their gradients need no table). T(x, y) between
+  two points is ``exp(-(c(x) - c(y)) @ beta)``, 2008's T(x, v) / T(y, v).
+- *Mie storage.* Single Rayleigh and single Mie are separate tables (2017's
+  non-combined option, 2008 Sec. 4 "Angular precision"), both without phase function,
+  which is applied at lookup (2017 ``GetSkyRadiance``). Orders >= 2 are stored as
+  radiance, phase functions included, in their own table (2017 adds them to the
+  Rayleigh table divided by P_R(nu); separate storage gives ``orders=1`` for free).
+- *Scattering density Delta J* (2017 ``ComputeScatteringDensity``): the incident
+  radiance at (r, mu_s) does not depend on the view direction, so we sample the
+  16 x 32 incident directions in a frame aligned with the sun, evaluate the incident
+  radiance once per (r, mu_s) and get Delta J for all (mu, nu) with one matrix product
+  by the phase matrix. Same midpoint rule in (theta, phi) as 2017 (whose phi origin is
+  the view's azimuth rather than the sun's).
+- *Order bookkeeping* follows 2017 ``Model::Precompute``: S and Delta S exclude paths
+  whose last bounce is on the ground; Delta J of order n adds the ground bounce of
+  Delta E of order n - 2; the render adds T alpha / pi (E_direct + E) for rays that hit
+  the ground, with the albedo of the atmosphere passed at render time.
+- *Autograd.* Every table is a differentiable function of the Atmosphere's tensors.
+  Work is done in chunks of texels; when gradients are needed each chunk runs under
+  ``torch.utils.checkpoint`` (non-reentrant), so the graph keeps only the tables
+  (inputs and outputs of each order) and the backward pass recomputes one chunk at a
+  time: memory stays O(tables + one chunk) for any number of orders.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Callable, NamedTuple
+
+import torch
+from torch import Tensor
+from torch.utils.checkpoint import checkpoint
+
+from ..atmosphere import Atmosphere
+from ..geometry import distance_to_bottom, distance_to_top, ray_hits_ground, safe_sqrt
+from .bruneton_tables import (
+    MU_S_MIN_DEFAULT,
+    TableSizes,
+    extinction_matrix3,
+    interpolate,
+    irradiance_index,
+    irradiance_texel_params,
+    profile_densities,
+    scattering_index,
+    scattering_texel_params,
+    transmittance_index,
+    transmittance_texel_params,
+)
+from .phase import mie_phase, rayleigh_phase
+from .single import sun_visible_fraction
+
+BELOW_MU_S_MIN = ("raise", "clamp", "zero")
+
+
+@dataclasses.dataclass(frozen=True)
+class Quadrature:
+    """Fixed sample counts of the precomputation integrals (Bruneton 2017 defaults).
+
+    Attributes:
+        transmittance_samples: trapezoid intervals for the optical length (2017: 500).
+        single_samples: trapezoid intervals along the view ray for single scattering (50).
+        multiple_samples: same for Delta S of orders >= 2 (50).
+        density_theta, density_phi: midpoint rule over the sphere for Delta J, theta in
+            [0, pi], phi in [0, 2 pi] (2017: 16 x 32).
+        irradiance_theta, irradiance_phi: midpoint rule over the upper hemisphere for the
+            indirect irradiance, theta in [0, pi/2] (2017: 16 x 64).
+    """
+
+    transmittance_samples: int = 500
+    single_samples: int = 50
+    multiple_samples: int = 50
+    density_theta: int = 16
+    density_phi: int = 32
+    irradiance_theta: int = 16
+    irradiance_phi: int = 64
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if not isinstance(v, int) or v < 1:
+                raise ValueError(f"Quadrature.{f.name} must be a positive integer, got {v!r}")
+
+
+@dataclasses.dataclass
+class PrecomputedAtmosphere:
+    """Bruneton tables for one atmosphere; build with :func:`precompute`.
+
+    Attributes:
+        atm: the atmosphere the tables were computed from.
+        orders: number of scattering orders N included (1 = single only).
+        sizes, quadrature, mu_s_min: the settings used.
+        transmittance_columns: (n_r, n_mu, 3) optical lengths to the top. [m]
+        direct_irradiance: (n_r, n_mu_s, W) Delta E of order 0. [W/(m^2 nm)]
+        irradiance: (n_r, n_mu_s, W) sum of indirect Delta E, orders 1..N-1 (zeros if N = 1).
+        single_rayleigh, single_mie: (R, MU, MU_S, NU, W) without phase function. [W/(m^2 nm)]
+        multiple: (R, MU, MU_S, NU, W) sum of Delta S of orders 2..N, or None if N = 1. [W/(m^2 sr nm)]
+        order_scattering: [Delta S_2, ..., Delta S_N] if built with ``keep_orders``.
+        order_irradiance: [Delta E_1, ..., Delta E_{N-1}] if built with ``keep_orders``.
+        timings: seconds per stage and ``total``.
+    """
+
+    atm: Atmosphere
+    orders: int
+    sizes: TableSizes
+    quadrature: Quadrature
+    mu_s_min: float
+    transmittance_columns: Tensor
+    direct_irradiance: Tensor
+    irradiance: Tensor
+    single_rayleigh: Tensor
+    single_mie: Tensor
+    multiple: Tensor | None
+    order_scattering: list[Tensor] | None = None
+    order_irradiance: list[Tensor] | None = None
+    timings: dict = dataclasses.field(default_factory=dict)
+
+    def sky_radiance(self, r, mu, mu_s, nu, **kwargs) -> Tensor:
+        """:func:`sky_radiance` with this table's atmosphere."""
+        return sky_radiance(self, None, r, mu, mu_s, nu, **kwargs)
+
+    def transmittance(self, r: Tensor, mu: Tensor, atm: Atmosphere | None = None) -> Tensor:
+        """Transmittance to the top of the atmosphere, shape (..., W) (rays not hitting the ground). [1]"""
+        ctx = self._ctx(atm)
+        return torch.exp(-_columns(ctx, r, mu) @ extinction_matrix3(ctx.atm))
+
+    def scattering(self, r: Tensor, mu: Tensor, mu_s: Tensor, nu: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        """Quadrilinear lookup of (single Rayleigh, single Mie, multiple) at (r, mu, mu_s, nu), each (..., W).
+
+        The single-scattering values have no phase function (multiply by P_R(nu), P_M(nu));
+        r in [bottom, top] (no move from space here, see :func:`sky_radiance`). The ray's
+        ground intersection, which picks the half of the mu axis, is computed from (r, mu).
+        """
+        hits = ray_hits_ground(r, mu, self.atm.bottom_radius)
+        idx = _scat_index(self._ctx(), r, mu, mu_s, nu, hits)
+        tabs = [self.single_rayleigh, self.single_mie] + ([self.multiple] if self.multiple is not None else [])
+        vals = interpolate(tabs, idx)
+        return vals[0], vals[1], (vals[2] if self.multiple is not None else None)
+
+    def ground_irradiance(self, r: Tensor, mu_s: Tensor) -> tuple[Tensor, Tensor]:
+        """(direct, indirect) irradiance on a horizontal surface at radius r, each (..., W). [W/(m^2 nm)]
+
+        Direct from the transmittance (2017 ComputeDirectIrradiance), indirect bilinear in the
+        ``irradiance`` table (orders 1..N-1).
+        """
+        atm = self.atm
+        direct = _direct_irradiance_from(self._ctx(), r, mu_s)
+        indirect = interpolate([self.irradiance], irradiance_index(r, mu_s, atm.bottom_radius, atm.top_radius, self.sizes))[0]
+        return direct, indirect
+
+    def _ctx(self, atm: Atmosphere | None = None) -> "_Ctx":
+        return _Ctx(self.transmittance_columns, self.atm if atm is None else atm, self.sizes, self.mu_s_min)
+
+    def nbytes(self) -> int:
+        ts = [self.transmittance_columns, self.direct_irradiance, self.irradiance, self.single_rayleigh, self.single_mie]
+        ts += [self.multiple] if self.multiple is not None else []
+        ts += (self.order_scattering or []) + (self.order_irradiance or [])
+        return sum(t.numel() * t.element_size() for t in ts)
+
+
+# ----------------------------------------------------------------------------------------
+# helpers
+
+
+def _chunked(fn: Callable[[int, int], Tensor], n: int, step: int, use_ckpt: bool) -> Tensor:
+    """``cat([fn(i, j) for chunks])``; each chunk checkpointed when gradients are recorded."""
+    outs = []
+    for i in range(0, n, step):
+        j = min(i + step, n)
+        outs.append(checkpoint(fn, i, j, use_reentrant=False) if use_ckpt else fn(i, j))
+    return torch.cat(outs, 0)
+
+
+_TEMPORARIES = 4.0
+"""Measured ratio of a chunk's peak working memory to the floats counted per item below."""
+
+
+def _step(chunk_bytes: float, per_item_floats: float, itemsize: int) -> int:
+    """Items per chunk so that a chunk's working memory stays near ``chunk_bytes``."""
+    return max(1, int(chunk_bytes // max(_TEMPORARIES * per_item_floats * itemsize, 1)))
+
+
+class _Ctx(NamedTuple):
+    """What lookups need: the optical-length table, the atmosphere, the sizes and mu_s_min."""
+
+    tc: Tensor
+    atm: Atmosphere
+    sizes: TableSizes
+    mu_s_min: float
+
+
+def _columns(ctx: _Ctx, r: Tensor, mu: Tensor) -> Tensor:
+    """Optical lengths (Rayleigh, Mie, ozone) from (r, mu) to the top, shape (..., 3). [m]"""
+    return interpolate([ctx.tc], transmittance_index(r, mu, ctx.atm.bottom_radius, ctx.atm.top_radius, ctx.sizes))[0]
+
+
+def _segment_columns(ctx: _Ctx, r: Tensor, mu: Tensor, d: Tensor, hits: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Optical lengths between (r, mu) and the point at distance d along the ray (2017 GetTransmittance).
+
+    Returns:
+        (columns (..., 3), r_d, mu_d): the segment's columns [m], and radius [m] and view cosine at d.
+    """
+    atm = ctx.atm
+    r_d = torch.clamp(torch.sqrt(torch.clamp_min(d * d + 2.0 * r * mu * d + r * r, 0.0)), atm.bottom_radius, atm.top_radius)
+    mu_d = torch.clamp((r * mu + d) / r_d, -1.0, 1.0)
+    sign = 1.0 - 2.0 * hits.to(r.dtype)
+    c0 = _columns(ctx, r, sign * mu)
+    c1 = _columns(ctx, r_d, sign * mu_d)
+    col = torch.where(hits.unsqueeze(-1), c1 - c0, c0 - c1)
+    return col, r_d, mu_d
+
+
+def _distance_to_boundary(r: Tensor, mu: Tensor, hits: Tensor, atm: Atmosphere) -> Tensor:
+    """2017 DistanceToNearestAtmosphereBoundary. [m]"""
+    return torch.where(hits, distance_to_bottom(r, mu, atm.bottom_radius), distance_to_top(r, mu, atm.top_radius))
+
+
+def _trapezoid(n: int, dtype, device) -> tuple[Tensor, Tensor]:
+    """Nodes i/n (i = 0..n) and trapezoid weights on [0, 1]."""
+    x = torch.linspace(0.0, 1.0, n + 1, dtype=dtype, device=device)
+    w = torch.full((n + 1,), 1.0 / n, dtype=dtype, device=device)
+    w[0] *= 0.5
+    w[-1] *= 0.5
+    return x, w
+
+
+def _direct_irradiance_from(ctx: _Ctx, r: Tensor, mu_s: Tensor) -> Tensor:
+    """Direct irradiance on a horizontal surface (2017 ComputeDirectIrradiance), shape (..., W).
+
+    E_sun T(r, mu_s) times the cosine factor averaged over the visible part of the sun disc.
+    """
+    atm = ctx.atm
+    a = atm.sun_angular_radius
+    cos_f = torch.where(mu_s < -a, torch.zeros_like(mu_s), torch.where(mu_s > a, mu_s, (mu_s + a) ** 2 / (4.0 * a)))
+    t = torch.exp(-_columns(ctx, r, mu_s) @ extinction_matrix3(atm))
+    return atm.solar_irradiance * t * cos_f.unsqueeze(-1)
+
+
+def _scat_index(ctx: _Ctx, r, mu, mu_s, nu, hits):
+    atm = ctx.atm
+    return scattering_index(r, mu, mu_s, nu, hits, atm.bottom_radius, atm.top_radius, ctx.mu_s_min, ctx.sizes)
+
+
+def _order_radiance(ctx, tables: tuple[Tensor, ...], order: int, r, mu, mu_s, nu, hits) -> Tensor:
+    """Radiance of exactly ``order`` bounces from the tables (2017 GetScattering with order), (..., W).
+
+    ``tables`` is (single_rayleigh, single_mie) for order 1, (Delta S_order,) otherwise.
+    """
+    atm = ctx.atm
+    idx = _scat_index(ctx, r, mu, mu_s, nu, hits)
+    if order == 1:
+        s_r, s_m = interpolate(list(tables), idx)
+        return s_r * rayleigh_phase(nu).unsqueeze(-1) + s_m * mie_phase(nu, atm.mie_g, atm.mie_phase).unsqueeze(-1)
+    return interpolate(list(tables), idx)[0]
+
+
+# ----------------------------------------------------------------------------------------
+# the precomputation stages (2008 Algorithm 4.1; 2017 functions named in each docstring)
+
+
+def transmittance_columns_table(atm: Atmosphere, sizes: TableSizes, samples: int, chunk_bytes: float, use_ckpt: bool) -> Tensor:
+    """Optical lengths to the top at the transmittance texels, shape (n_r, n_mu, 3). [m]
+
+    2017 ComputeOpticalLengthToTopAtmosphereBoundary: trapezoid rule with ``samples``
+    intervals of each density profile (Rayleigh, Mie exponential; ozone tent).
+    """
+    dtype, device = atm.dtype, atm.device
+    r, mu = transmittance_texel_params(atm.bottom_radius, atm.top_radius, sizes, dtype, device)
+    r, mu = r.reshape(-1), mu.reshape(-1)
+    x, w = _trapezoid(samples, dtype, device)
+
+    def fn(i: int, j: int) -> Tensor:
+        rr, mm = r[i:j, None], mu[i:j, None]
+        d = distance_to_top(rr, mm, atm.top_radius)
+        s = d * x
+        r_s = torch.sqrt(torch.clamp_min(s * s + 2.0 * rr * mm * s + rr * rr, 0.0))
+        dens = profile_densities(r_s - atm.bottom_radius, atm)  # (n, S, 3)
+        return torch.einsum("nsk,s->nk", dens, w) * d
+
+    step = _step(chunk_bytes, (samples + 1) * 8, torch.finfo(dtype).bits // 8)
+    return _chunked(fn, r.shape[0], step, use_ckpt).reshape(sizes.transmittance_r, sizes.transmittance_mu, 3)
+
+
+def _view_groups(texels) -> tuple[Tensor, ...]:
+    """Texel parameters grouped by view ray: (r, mu, hits) of shape (G, 1) for the G = R MU rays,
+    (mu_s, nu) of shape (G, T) for their T = MU_S NU sun configurations."""
+    R, MU, MUS, NU = texels.r.shape
+    g = lambda t: t[:, :, 0, 0].reshape(R * MU, 1)  # noqa: E731
+    t = lambda x: x.reshape(R * MU, MUS * NU)  # noqa: E731
+    return g(texels.r), g(texels.mu), g(texels.hits_ground), t(texels.mu_s), t(texels.nu)
+
+
+def _single_scattering_table(ctx, texels, quad: Quadrature, chunk_bytes: float, use_ckpt: bool) -> tuple[Tensor, Tensor]:
+    """Single Rayleigh and Mie scattering without phase function (2017 ComputeSingleScattering).
+
+    Trapezoid rule with ``quad.single_samples`` intervals from the texel's point to the
+    nearest boundary; at each sample T(x, y) T(y, sun) (times the sun's visible fraction)
+    times the density; times E_sun beta_s at the end. The view-ray quantities (sample
+    radii, T(x, y)) are shared by the MU_S x NU texels of each (r, mu).
+    Shapes (R, MU, MU_S, NU, W) each. [W/(m^2 nm)]
+    """
+    atm = ctx.atm
+    dtype, device = atm.dtype, atm.device
+    shape = texels.r.shape
+    r, mu, g, mus, nu = _view_groups(texels)
+    n_t = mus.shape[1]
+    x, w = _trapezoid(quad.single_samples, dtype, device)
+    n_w = atm.wavelengths.shape[0]
+
+    def fn(i: int, j: int) -> Tensor:
+        ext = extinction_matrix3(atm)
+        rr, mm, gg = r[i:j], mu[i:j], g[i:j]  # (G, 1)
+        dist = _distance_to_boundary(rr, mm, gg, atm)
+        d = dist * x  # (G, S)
+        col_v, r_d, _ = _segment_columns(ctx, rr.expand_as(d), mm.expand_as(d), d, gg.expand_as(d))
+        ss, nn = mus[i:j, :, None], nu[i:j, :, None]  # (G, T, 1)
+        mus_d = torch.clamp((rr[:, :, None] * ss + d[:, None, :] * nn) / r_d[:, None, :], -1.0, 1.0)  # (G, T, S)
+        r_dt = r_d[:, None, :].expand_as(mus_d)
+        col_s = _columns(ctx, r_dt, mus_d)  # (G, T, S, 3)
+        vis = sun_visible_fraction(r_dt, mus_d, atm.bottom_radius, atm.sun_angular_radius)
+        trans = torch.exp(-(col_v[:, None] + col_s) @ ext) * vis.unsqueeze(-1)  # (G, T, S, W)
+        dens = profile_densities(r_d - atm.bottom_radius, atm, ozone=False)  # (G, S, 2)
+        integ = torch.einsum("gsk,gtsw->gtkw", dens * (w * dist).unsqueeze(-1), trans)
+        ray = integ[:, :, 0] * (atm.solar_irradiance * atm.rayleigh_scattering)
+        mie = integ[:, :, 1] * (atm.solar_irradiance * atm.mie_scattering)
+        return torch.cat([ray, mie], dim=-1)  # (G, T, 2W)
+
+    step = _step(chunk_bytes, n_t * (quad.single_samples + 1) * (3 * n_w + 40), torch.finfo(dtype).bits // 8)
+    out = _chunked(fn, r.shape[0], step, use_ckpt)
+    return out[..., :n_w].reshape(*shape, n_w), out[..., n_w:].reshape(*shape, n_w)
+
+
+def _direct_irradiance_table(ctx, sizes: TableSizes) -> Tensor:
+    """Delta E of order 0 at the irradiance texels (2017 ComputeDirectIrradianceTexture), (n_r, n_mu_s, W)."""
+    atm = ctx.atm
+    r, mu_s = irradiance_texel_params(atm.bottom_radius, atm.top_radius, sizes, atm.dtype, atm.device)
+    return _direct_irradiance_from(ctx, r, mu_s)
+
+
+def _indirect_irradiance_table(ctx, tables, order: int, quad: Quadrature, chunk_bytes: float, use_ckpt: bool) -> Tensor:
+    """Delta E of ``order`` >= 1 bounces on a horizontal surface (2017 ComputeIndirectIrradiance).
+
+    Midpoint rule over the upper hemisphere: sum of L_order(r, omega_z, mu_s, omega . s) omega_z d omega.
+    Shape (n_r, n_mu_s, W). [W/(m^2 nm)]
+    """
+    atm, sizes = ctx.atm, ctx.sizes
+    dtype, device = atm.dtype, atm.device
+    r, mu_s = irradiance_texel_params(atm.bottom_radius, atm.top_radius, sizes, dtype, device)
+    shape = r.shape
+    r, mu_s = r.reshape(-1), mu_s.reshape(-1)
+    nt, nph = quad.irradiance_theta, quad.irradiance_phi
+    dth, dph = (math.pi / 2) / nt, (2 * math.pi) / nph
+    th = (torch.arange(nt, dtype=dtype, device=device) + 0.5) * dth
+    ph = (torch.arange(nph, dtype=dtype, device=device) + 0.5) * dph
+    th, ph = torch.meshgrid(th, ph, indexing="ij")
+    oz = torch.cos(th).reshape(-1)
+    ox = (torch.sin(th) * torch.cos(ph)).reshape(-1)
+    dom = (torch.sin(th) * dth * dph).reshape(-1)
+    n_w = atm.wavelengths.shape[0]
+
+    def fn(i: int, j: int) -> Tensor:
+        rr, ss = r[i:j, None], mu_s[i:j, None]
+        sin_s = safe_sqrt(1.0 - ss * ss)
+        nu = torch.clamp(ox * sin_s + oz * ss, -1.0, 1.0)
+        rr, ss = rr.expand_as(nu), ss.expand_as(nu)
+        mu = oz.expand_as(nu)
+        hits = torch.zeros_like(nu, dtype=torch.bool)
+        L = _order_radiance(ctx, tables, order, rr, mu, ss, nu, hits)  # (n, D, W)
+        return torch.einsum("ndw,d->nw", L, oz * dom)
+
+    step = _step(chunk_bytes, nt * nph * (20 * n_w + 40), torch.finfo(dtype).bits // 8)
+    return _chunked(fn, r.shape[0], step, use_ckpt).reshape(*shape, n_w)
+
+
+def _density_directions(quad: Quadrature, dtype, device) -> tuple[Tensor, Tensor]:
+    """Incident directions (D, 3) of the Delta J sphere rule in the sun frame, and their solid angles (D,)."""
+    nt, nph = quad.density_theta, quad.density_phi
+    dth, dph = math.pi / nt, 2 * math.pi / nph
+    th = (torch.arange(nt, dtype=dtype, device=device) + 0.5) * dth
+    ph = (torch.arange(nph, dtype=dtype, device=device) + 0.5) * dph
+    th, ph = torch.meshgrid(th, ph, indexing="ij")
+    om = torch.stack([torch.sin(th) * torch.cos(ph), torch.sin(th) * torch.sin(ph), torch.cos(th)], -1).reshape(-1, 3)
+    return om, (torch.sin(th) * dth * dph).reshape(-1)
+
+
+def _scattering_density_table(
+    ctx, texels, prev_tables, order: int, prev_irradiance: Tensor, quad: Quadrature, chunk_bytes: float, use_ckpt: bool
+) -> Tensor:
+    """Delta J of ``order`` >= 2 (2017 ComputeScatteringDensity), shape (R, MU, MU_S, NU, W). [W/(m^3 sr nm)]
+
+    J(r, mu, mu_s, nu) = sum_i L_in(r, mu_s, omega_i) [beta_R rho_R(r) P_R(omega . omega_i)
+    + beta_M rho_M(r) P_M(omega . omega_i)] d omega_i  (2008 eq. 7), with L_in the radiance of
+    order - 1 bounces from the tables plus, for omega_i towards the ground, the ground's
+    Lambertian reflection T alpha / pi Delta E_{order-2} (2008 Algorithm 4.1, first line of the loop).
+    The incident directions are sampled in the sun's frame, so L_in is evaluated once per
+    (r, mu_s) and shared by all view directions (mu, nu).
+    """
+    atm, sizes = ctx.atm, ctx.sizes
+    dtype, device = atm.dtype, atm.device
+    R, MU, MUS, NU = sizes.scattering_shape
+    om, dom = _density_directions(quad, dtype, device)  # (D, 3), (D,)
+    n_d = om.shape[0]
+    n_w = atm.wavelengths.shape[0]
+    # groups (r, mu_s), flattened as g = ir * MUS + ims
+    r_g = texels.r[:, 0, :, 0].reshape(-1)
+    mus_g = texels.mu_s[:, 0, :, 0].reshape(-1)
+    mu_v = texels.mu[:, :, 0, :]  # (R, MU, NU), same for every mu_s
+    nu_v = texels.nu.permute(0, 2, 1, 3)  # (R, MUS, MU, NU)
+
+    def fn(i: int, j: int) -> Tensor:
+        ext = extinction_matrix3(atm)
+        rr, ss = r_g[i:j, None], mus_g[i:j, None]  # (G, 1)
+        sin_s = safe_sqrt(1.0 - ss * ss)
+        cz = om[:, 2].expand(rr.shape[0], n_d)
+        nu1 = torch.clamp(om[:, 0] * sin_s + om[:, 2] * ss, -1.0, 1.0)  # (G, D)
+        rr_, ss_ = rr.expand_as(nu1), ss.expand_as(nu1)
+        hits = ray_hits_ground(rr_, cz, atm.bottom_radius)
+        L = _order_radiance(ctx, prev_tables, order - 1, rr_, cz, ss_, nu1, hits)  # (G, D, W)
+        # Light of order - 1 bounces whose last bounce is on the ground.
+        d_g = torch.where(hits, distance_to_bottom(rr_, cz, atm.bottom_radius), torch.zeros_like(cz))
+        col_g, r_d, _ = _segment_columns(ctx, rr_, cz, d_g, hits)
+        mus_ground = torch.clamp((rr_ * ss_ + d_g * nu1) / r_d, -1.0, 1.0)
+        e_g = interpolate([prev_irradiance], irradiance_index(torch.full_like(mus_ground, atm.bottom_radius), mus_ground,
+                                                              atm.bottom_radius, atm.top_radius, sizes))[0]
+        L = L + hits.unsqueeze(-1) * torch.exp(-col_g @ ext) * (atm.ground_albedo / math.pi) * e_g
+        # View directions of the group's texels in the sun frame.
+        ir = torch.div(torch.arange(i, j, device=device), MUS, rounding_mode="floor")
+        ims = torch.arange(i, j, device=device) % MUS
+        mu = mu_v[ir].reshape(j - i, MU * NU)  # (G, V)
+        nu = nu_v[ir, ims].reshape(j - i, MU * NU)
+        safe_sin = torch.where(sin_s > 0, sin_s, torch.ones_like(sin_s))
+        vx = torch.where(sin_s > 0, (nu - mu * ss) / safe_sin, torch.zeros_like(nu))
+        vy = safe_sqrt(1.0 - mu * mu - vx * vx)
+        cosang = vx.unsqueeze(-1) * om[:, 0] + vy.unsqueeze(-1) * om[:, 1] + mu.unsqueeze(-1) * om[:, 2]  # (G, V, D)
+        cosang = torch.clamp(cosang, -1.0, 1.0)
+        dens = profile_densities(rr[:, 0] - atm.bottom_radius, atm, ozone=False)  # (G, 2)
+        j_r = torch.bmm(rayleigh_phase(cosang) * dom, L)  # (G, V, W)
+        j_m = torch.bmm(mie_phase(cosang, atm.mie_g, atm.mie_phase) * dom, L)
+        out = j_r * (dens[:, 0, None, None] * atm.rayleigh_scattering) + j_m * (dens[:, 1, None, None] * atm.mie_scattering)
+        return out  # (G, V, W)
+
+    step = _step(chunk_bytes, MU * NU * n_d * 4 + n_d * 40 * n_w, torch.finfo(dtype).bits // 8)
+    out = _chunked(fn, R * MUS, step, use_ckpt)  # (R*MUS, MU*NU, W)
+    return out.reshape(R, MUS, MU, NU, n_w).permute(0, 2, 1, 3, 4).contiguous()
+
+
+def _multiple_scattering_table(ctx, texels, density: Tensor, quad: Quadrature, chunk_bytes: float, use_ckpt: bool) -> Tensor:
+    """Delta S of one order from its Delta J (2017 ComputeMultipleScattering), (R, MU, MU_S, NU, W).
+
+    Trapezoid rule with ``quad.multiple_samples`` intervals of T(x, y) Delta J(y, v, s)
+    from the texel's point to the nearest boundary (2008 eq. 11), T(x, y) shared by the
+    MU_S x NU texels of each (r, mu). [W/(m^2 sr nm)]
+    """
+    atm = ctx.atm
+    dtype, device = atm.dtype, atm.device
+    shape = texels.r.shape
+    r, mu, g, mus, nu = _view_groups(texels)
+    n_t = mus.shape[1]
+    x, w = _trapezoid(quad.multiple_samples, dtype, device)
+    n_w = atm.wavelengths.shape[0]
+
+    def fn(i: int, j: int) -> Tensor:
+        ext = extinction_matrix3(atm)
+        rr, mm, gg = r[i:j], mu[i:j], g[i:j]  # (G, 1)
+        dist = _distance_to_boundary(rr, mm, gg, atm)
+        d = dist * x  # (G, S)
+        col_v, r_d, mu_d = _segment_columns(ctx, rr.expand_as(d), mm.expand_as(d), d, gg.expand_as(d))
+        t_view = torch.exp(-col_v @ ext) * (w * dist).unsqueeze(-1)  # (G, S, W), with the weights
+        ss, nn = mus[i:j, :, None], nu[i:j, :, None]  # (G, T, 1)
+        mus_d = torch.clamp((rr[:, :, None] * ss + d[:, None, :] * nn) / r_d[:, None, :], -1.0, 1.0)  # (G, T, S)
+        idx = _scat_index(ctx, r_d[:, None, :], mu_d[:, None, :], mus_d, nn, gg[:, :, None])
+        dj = interpolate([density], idx)[0]  # (G, T, S, W)
+        return torch.einsum("gtsw,gsw->gtw", dj, t_view)
+
+    step = _step(chunk_bytes, n_t * (quad.multiple_samples + 1) * (3 * n_w + 60), torch.finfo(dtype).bits // 8)
+    return _chunked(fn, r.shape[0], step, use_ckpt).reshape(*shape, n_w)
+
+
+def precompute(
+    atm: Atmosphere,
+    orders: int = 4,
+    sizes: TableSizes | None = None,
+    quadrature: Quadrature | None = None,
+    mu_s_min: float = MU_S_MIN_DEFAULT,
+    keep_orders: bool = False,
+    chunk_bytes: float | None = None,
+    checkpointing: bool | None = None,
+) -> PrecomputedAtmosphere:
+    """Bruneton & Neyret 2008 Algorithm 4.1: transmittance, irradiance and scattering tables.
+
+    Args:
+        atm: the atmosphere; every table follows its dtype and device and is differentiable
+            with respect to its tensors (scattering and extinction coefficients, scale
+            heights, mie_g, ground_albedo, ozone_absorption, solar_irradiance).
+        orders: N >= 1, the number of scattering orders (bounces) in the tables (2017: 4).
+        sizes: table resolutions (default :class:`TableSizes`, 2017's).
+        quadrature: sample counts (default :class:`Quadrature`, 2017's).
+        mu_s_min: lowest sun zenith cosine in the scattering tables, in (-1, 0). [1]
+        keep_orders: also keep every order's Delta S and Delta E (for analysis).
+        chunk_bytes: approximate working memory per chunk of texels, which bounds peak memory;
+            default 128 MB on CPU, 2 GB on CUDA (with 128 MB chunks an H200 took 40 s instead of 4 s).
+        checkpointing: checkpoint each chunk; default: when gradients are being recorded.
+
+    Returns:
+        The tables, with ``timings`` in seconds per stage.
+    """
+    if not (isinstance(orders, int) and orders >= 1):
+        raise ValueError(f"orders must be an integer >= 1, got {orders!r}")
+    if not (-1.0 < mu_s_min < 0.0):
+        raise ValueError(f"mu_s_min must be in (-1, 0), got {mu_s_min}")
+    sizes = TableSizes() if sizes is None else sizes
+    quad = Quadrature() if quadrature is None else quadrature
+    if chunk_bytes is None:
+        chunk_bytes = 2e9 if atm.device.type == "cuda" else 128e6
+    if checkpointing is None:
+        checkpointing = torch.is_grad_enabled() and any(getattr(atm, f).requires_grad for f in atm.tensor_fields())
+    sync = torch.cuda.synchronize if atm.device.type == "cuda" else (lambda: None)
+    timings: dict[str, float] = {}
+    t_all = t0 = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal t0
+        sync()
+        t = time.perf_counter()
+        timings[name] = t - t0
+        t0 = t
+
+    tc = transmittance_columns_table(atm, sizes, quad.transmittance_samples, chunk_bytes, checkpointing)
+    ctx = _Ctx(tc, atm, sizes, mu_s_min)
+    lap("transmittance")
+    direct = _direct_irradiance_table(ctx, sizes)
+    lap("direct_irradiance")
+    texels = scattering_texel_params(atm.bottom_radius, atm.top_radius, mu_s_min, sizes, atm.dtype, atm.device)
+    s_r, s_m = _single_scattering_table(ctx, texels, quad, chunk_bytes, checkpointing)
+    lap("single_scattering")
+    irradiance = torch.zeros_like(direct)
+    multiple = None
+    kept_s: list[Tensor] = []
+    kept_e: list[Tensor] = []
+    prev_tables: tuple[Tensor, ...] = (s_r, s_m)
+    prev_e = direct
+    for n in range(2, orders + 1):
+        dj = _scattering_density_table(ctx, texels, prev_tables, n, prev_e, quad, chunk_bytes, checkpointing)
+        lap(f"order_{n}_density")
+        prev_e = _indirect_irradiance_table(ctx, prev_tables, n - 1, quad, chunk_bytes, checkpointing)
+        irradiance = irradiance + prev_e
+        lap(f"order_{n}_irradiance")
+        ds = _multiple_scattering_table(ctx, texels, dj, quad, chunk_bytes, checkpointing)
+        del dj
+        multiple = ds if multiple is None else multiple + ds
+        lap(f"order_{n}_scattering")
+        if keep_orders:
+            kept_s.append(ds)
+            kept_e.append(prev_e)
+        prev_tables = (ds,)
+    timings["total"] = time.perf_counter() - t_all
+    return PrecomputedAtmosphere(
+        atm=atm,
+        orders=orders,
+        sizes=sizes,
+        quadrature=quad,
+        mu_s_min=mu_s_min,
+        transmittance_columns=tc,
+        direct_irradiance=direct,
+        irradiance=irradiance,
+        single_rayleigh=s_r,
+        single_mie=s_m,
+        multiple=multiple,
+        order_scattering=kept_s if keep_orders else None,
+        order_irradiance=kept_e if keep_orders else None,
+        timings=timings,
+    )
+
+
+# ----------------------------------------------------------------------------------------
+# lookup
+
+
+def sky_radiance(
+    tables: PrecomputedAtmosphere,
+    atm: Atmosphere | None,
+    r,
+    mu,
+    mu_s,
+    nu,
+    orders: int | None = None,
+    ground: bool = True,
+    sun_disk: bool = False,
+    below_mu_s_min: str = "raise",
+    chunk_bytes: float | None = None,
+) -> Tensor:
+    """Spectral sky radiance from the precomputed tables (2017 GetSkyRadiance; 2008 eq. 16).
+
+    ``P_R(nu) S_R + P_M(nu) S_M + sum_{n=2..N} Delta S_n`` at the observer, with the phase
+    functions of single scattering applied at lookup. An observer in space is first moved
+    along the view ray to the top of the atmosphere (rays that miss it get 0). With
+    ``ground``, rays that hit the ground add ``T alpha / pi (E_direct + E_indirect)`` at the
+    ground point (2008 eq. 14 with a horizontal ground, R[L0] + R^[L*]).
+
+    Args:
+        tables: from :func:`precompute`.
+        atm: atmosphere for the render-time terms (phase functions, ground albedo, solar
+            disc); None for ``tables.atm``.
+        r: observer distance from the planet centre, >= bottom_radius, shape (...). [m]
+        mu, mu_s, nu: view zenith, sun zenith and view-sun cosines, shape (...). [1]
+        orders: use orders 1..orders (<= tables.orders; intermediate values need tables
+            built with ``keep_orders``); None for all. 1 gives single scattering.
+        ground: add the light reflected by the Lambertian ground for rays that hit it.
+        sun_disk: add the attenuated solar disc.
+        below_mu_s_min: where the sun at the (moved) observer is below the table's
+            ``mu_s_min``: "raise" (ValueError), "clamp" (the table's value at mu_s_min, 2017's
+            behaviour) or "zero".
+        chunk_bytes: approximate working memory per chunk of rays; default 64 MB on CPU, 1 GB on CUDA.
+
+    Returns:
+        Spectral radiance, shape (..., W). [W/(m^2 sr nm)]
+    """
+    atm = tables.atm if atm is None else atm
+    if below_mu_s_min not in BELOW_MU_S_MIN:
+        raise ValueError(f"below_mu_s_min must be one of {BELOW_MU_S_MIN}, got {below_mu_s_min!r}")
+    n_orders = tables.orders if orders is None else int(orders)
+    if not 1 <= n_orders <= tables.orders:
+        raise ValueError(f"orders must be in [1, {tables.orders}] for these tables, got {orders}")
+    if 1 < n_orders < tables.orders and tables.order_scattering is None:
+        raise ValueError(f"orders={n_orders} < {tables.orders} needs tables built with keep_orders=True")
+    dtype, device = tables.single_rayleigh.dtype, tables.single_rayleigh.device
+    if chunk_bytes is None:
+        chunk_bytes = 1e9 if device.type == "cuda" else 64e6
+    r, mu, mu_s, nu = (torch.as_tensor(t, dtype=dtype, device=device) for t in (r, mu, mu_s, nu))
+    r, mu, mu_s, nu = torch.broadcast_tensors(r, mu, mu_s, nu)
+    batch = r.shape
+    r, mu, mu_s, nu = (t.reshape(-1) for t in (r, mu, mu_s, nu))
+    Rb, Rt = atm.bottom_radius, atm.top_radius
+    if bool((r < Rb - 1.0).any()):
+        raise ValueError(f"observer below the ground: min r = {float(r.min()):.1f} m < bottom_radius {Rb} m")
+    # Observer in space: move it to where the view ray enters the atmosphere (2017 GetSkyRadiance).
+    rmu = r * mu
+    disc = rmu * rmu - r * r + Rt * Rt
+    d_in = -rmu - safe_sqrt(disc)
+    outside = r > Rt
+    enters = outside & (disc >= 0) & (d_in > 0)
+    valid = ~outside | enters
+    d_in = torch.where(enters, d_in, torch.zeros_like(d_in))
+    r1 = torch.where(enters, torch.full_like(r, Rt), r)
+    mu1 = torch.where(enters, torch.clamp((rmu + d_in) / Rt, -1.0, 1.0), mu)
+    mu_s1 = torch.where(enters, torch.clamp((r * mu_s + d_in * nu) / Rt, -1.0, 1.0), mu_s)
+    r1 = torch.where(valid, r1, torch.full_like(r, Rt))
+    below = valid & (mu_s1 < tables.mu_s_min)
+    if below_mu_s_min == "raise" and bool(below.any()):
+        raise ValueError(
+            f"sun zenith cosine {float(mu_s1[below].min()):.4f} at the observer is below the tables' "
+            f"mu_s_min = {tables.mu_s_min}; precompute with a lower mu_s_min or pass below_mu_s_min='clamp' or 'zero'"
+        )
+    keep = valid & ~below if below_mu_s_min == "zero" else valid
+
+    if n_orders == 1:
+        mult: list[Tensor] = []
+    elif n_orders == tables.orders:
+        mult = [tables.multiple]
+    else:
+        mult = tables.order_scattering[: n_orders - 1]
+    if n_orders == 1:
+        e_ind = None
+    elif n_orders == tables.orders:
+        e_ind = tables.irradiance
+    else:
+        e_ind = sum(tables.order_irradiance[: n_orders - 1])
+    ctx = _Ctx(tables.transmittance_columns, atm, tables.sizes, tables.mu_s_min)
+    n_w = tables.single_rayleigh.shape[-1]
+
+    def fn(i: int, j: int) -> Tensor:
+        rr, mm, ss, nn = r1[i:j], mu1[i:j], mu_s1[i:j], nu[i:j]
+        hits = ray_hits_ground(rr, mm, Rb) & valid[i:j]
+        idx = _scat_index(ctx, rr, mm, ss, nn, hits)
+        vals = interpolate([tables.single_rayleigh, tables.single_mie] + mult, idx)
+        out = vals[0] * rayleigh_phase(nn).unsqueeze(-1) + vals[1] * mie_phase(nn, atm.mie_g, atm.mie_phase).unsqueeze(-1)
+        for v in vals[2:]:
+            out = out + v
+        ext = extinction_matrix3(atm)
+        if ground:
+            d_g = torch.where(hits, distance_to_bottom(rr, mm, Rb), torch.zeros_like(rr))
+            col_g, r_g, _ = _segment_columns(ctx, rr, mm, d_g, hits)
+            mus_g = torch.clamp((rr * ss + d_g * nn) / r_g, -1.0, 1.0)
+            r_b = torch.full_like(rr, Rb)
+            e = _direct_irradiance_from(ctx, r_b, mus_g)
+            if e_ind is not None:
+                e = e + interpolate([e_ind], irradiance_index(r_b, mus_g, Rb, Rt, tables.sizes))[0]
+            out = out + hits.unsqueeze(-1) * torch.exp(-col_g @ ext) * (atm.ground_albedo / math.pi) * e
+        out = out * keep[i:j].unsqueeze(-1)
+        if sun_disk:
+            in_disk = (nn > math.cos(atm.sun_angular_radius)) & ~hits
+            t_top = torch.where(valid[i:j].unsqueeze(-1), torch.exp(-_columns(ctx, rr, mm) @ ext), torch.ones_like(out))
+            out = out + in_disk.unsqueeze(-1) * t_top * (atm.solar_irradiance / (math.pi * atm.sun_angular_radius**2))
+        return out
+
+    step = _step(chunk_bytes, (3 + len(mult)) * 3 * n_w + 200, torch.finfo(dtype).bits // 8)
+    if r1.shape[0] == 0:
+        return torch.zeros(*batch, n_w, dtype=dtype, device=device)
+    return _chunked(fn, r1.shape[0], step, False).reshape(*batch, n_w)
