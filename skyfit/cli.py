@@ -505,6 +505,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--json", action="store_true")
     b.set_defaults(func=cmd_bench)
 
+    from .transmittance.spline import SPLINE_KINDS
+
     c = sub.add_parser("calibrate-integrator", help="fit Taylor a, b; pick spline grid and view samples for an atmosphere")
     c.add_argument("config", help="atmosphere config YAML (or a shipped name: earth, mars, ...)")
     c.add_argument("--out", required=True, help="output .json file (docs/integrator_calibration.md)")
@@ -513,7 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--metric", choices=("transmittance", "column", "radiance"), default="transmittance", help="Taylor fit error metric (docs/integrator_calibration.md)")
     c.add_argument("--d-spacing", choices=("view", "paper"), default="view", help="line distances of the (d, t) domain")
     c.add_argument("--view-rule", choices=RULES, default="trapezoid", help="outer quadrature rule of the view samples")
-    c.add_argument("--spline-kind", default="natural_cubic", help="spline kind of the grid search")
+    c.add_argument("--spline-kind", choices=SPLINE_KINDS, default="natural_cubic", help="spline kind of the grid search")
     c.add_argument("--wavelengths", default=DEFAULT_WAVELENGTHS, help="START:STOP:STEP or comma list [nm]")
     c.add_argument("--quick", action="store_true", help="coarser domain, fewer rays and candidates (seconds, for CI)")
     c.add_argument("--json", action="store_true")
