@@ -99,7 +99,7 @@ FULL_PLAN = BenchPlan(
     light_samples={"trapezoid": (128, 16), "midpoint": (32,), "simpson": (32,), "gauss": (32,)},
     reference_light_samples=32,
     reference_view_samples=128,
-    row_budget_s=90.0,
+    row_budget_s=60.0,
 )
 """``skyfit bench``: a 128 x 128 sky at three sun zeniths, N = 8 ... 1024 (several minutes on 2 cores)."""
 
@@ -133,6 +133,7 @@ class BenchRow:
     rmse_mw: float
     mean_delta_e: float
     role: str = "method"  # "reference", "reference check" or "method"
+    cpu_s: float = math.nan  # process CPU time of the renders (all threads)
     pareto: bool = False
     note: str = ""
 
@@ -212,24 +213,26 @@ def _prepare(integrator, atm, device: str):
 
 
 def _render_set(atm, integrator, column_fn, plan: BenchPlan, view_samples: int, rule: str, device: str, progress=None):
-    """Render every sun zenith -> (spectral radiance of the valid pixels per image, float64 numpy (P, W); seconds)."""
+    """Render every sun zenith -> (spectral radiance of the valid pixels per image as float64 numpy (P, W),
+    wall seconds, process CPU seconds)."""
     from .camera import FisheyeCamera
     from .render import render_fisheye
 
     cam = FisheyeCamera(plan.size)
-    images, elapsed = [], 0.0
+    images, elapsed, cpu = [], 0.0, 0.0
     for zen in plan.sun_zeniths_deg:
         _sync(device)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         with torch.no_grad():
             img = render_fisheye(atm, cam, zen, plan.sun_azimuth_deg, integrator, view_samples=view_samples,
                                  rule=rule, column_fn=column_fn)
         _sync(device)
         elapsed += time.perf_counter() - t0
+        cpu += time.process_time() - c0
         images.append(img.spectral[img.valid].detach().to("cpu", torch.float64).numpy())
         if progress is not None:
             progress.update(1)
-    return images, elapsed
+    return images, elapsed, cpu
 
 
 def errors_against(reference: list[np.ndarray], images: list[np.ndarray], wavelengths_nm: np.ndarray,
@@ -306,12 +309,12 @@ def _median_ratio(matches: list[dict]) -> float | None:
 
 # -- outputs -------------------------------------------------------------------------
 _COLUMNS = ("method", "settings", "light_samples", "view_samples", "rule", "dtype", "time_s", "time_per_image_s",
-            "prepare_s", "rmse_mw", "mean_delta_e", "role", "pareto", "note")
+            "cpu_s", "prepare_s", "rmse_mw", "mean_delta_e", "role", "pareto", "note")
 
 
 def _row_dict(r: BenchRow) -> dict:
     d = {k: getattr(r, k) for k in _COLUMNS}
-    for k in ("time_s", "time_per_image_s", "prepare_s", "rmse_mw", "mean_delta_e"):
+    for k in ("time_s", "time_per_image_s", "cpu_s", "prepare_s", "rmse_mw", "mean_delta_e"):
         d[k] = None if not math.isfinite(d[k]) else round(float(d[k]), 6)
     return d
 
@@ -330,8 +333,8 @@ def _fmt(x: float, digits: int = 3) -> str:
 
 def markdown_table(rows: list[BenchRow]) -> str:
     """The table in Gałaj 2021 Table 3's layout (method named on its first row), plus our extra columns."""
-    head = ("| Method | Settings | Time [s] | Time/image [s] | RMSE [mW/(m² sr nm)] | ΔE (CIE 1976) "
-            "| No. view samples | No. light samples | Pareto |\n|---|---|---:|---:|---:|---:|---:|---:|:-:|\n")
+    head = ("| Method | Settings | Time [s] | Time/image [s] | CPU time [s] | RMSE [mW/(m² sr nm)] | ΔE (CIE 1976) "
+            "| No. view samples | No. light samples | Pareto |\n|---|---|---:|---:|---:|---:|---:|---:|---:|:-:|\n")
     lines, last = [], None
     for r in rows:
         key = (r.method, r.settings, r.role)
@@ -339,11 +342,10 @@ def markdown_table(rows: list[BenchRow]) -> str:
         last = key
         light = "1" if r.light_samples is None else str(r.light_samples)
         if r.note and not math.isfinite(r.mean_delta_e):
-            lines.append(f"| {name} | {r.settings} | — | — | — | — | {r.view_samples} | {light} | | ")
-            lines[-1] = lines[-1][:-3] + f"| {r.note} |"
+            lines.append(f"| {name} | {r.settings} | {r.note.split(':')[0]} | | | — | — | {r.view_samples} | {light} | |")
             continue
         lines.append(
-            f"| {name} | {r.settings} | {_fmt(r.time_s)} | {_fmt(r.time_per_image_s)} | {_fmt(r.rmse_mw)} "
+            f"| {name} | {r.settings} | {_fmt(r.time_s)} | {_fmt(r.time_per_image_s)} | {_fmt(r.cpu_s)} | {_fmt(r.rmse_mw)} "
             f"| {_fmt(r.mean_delta_e)} | {r.view_samples} | {light} | {'●' if r.pareto else ''} |"
         )
     return head + "\n".join(lines) + "\n"
@@ -462,11 +464,11 @@ def run_bench(out: Path, quick: bool = False, device: str = "cpu", as_json: bool
             for role, n_view, m in zip(("reference", "reference check"), ref_views, ref_lights):
                 integ = make_integrator("gauss", samples=m)
                 column_fn, p = _prepare(integ, atm64, device)
-                images, t = _render_set(atm64, integ, column_fn, plan, n_view, "gauss", device, bar)
+                images, t, c = _render_set(atm64, integ, column_fn, plan, n_view, "gauss", device, bar)
                 ref = images if ref is None else ref
                 rmse, de = errors_against(ref, images, lam, plan.white_percentile)
                 rows.append(BenchRow("gauss", f"samples={m}", m, n_view, "gauss", "float64", t, p, rmse, de,
-                                     role=role, _n_images=n_img))
+                                     role=role, cpu_s=c, _n_images=n_img))
             for name, settings, light in entries:
                 label = ",".join(f"{k}={v}" for k, v in settings.items())
                 stop, last, prep = "", None, math.nan
@@ -493,10 +495,11 @@ def run_bench(out: Path, quick: bool = False, device: str = "cpu", as_json: bool
                         continue
                     done = bar.n
                     try:
-                        images, t = _render_set(atm, integ, column_fn, plan, n_view, plan.rule, device, bar)
+                        images, t, c = _render_set(atm, integ, column_fn, plan, n_view, plan.rule, device, bar)
                         if t < 0.5:  # short rows: best of three, for stable timings
                             for _ in range(2):
-                                t = min(t, _render_set(atm, integ, column_fn, plan, n_view, plan.rule, device)[1])
+                                t2, c2 = _render_set(atm, integ, column_fn, plan, n_view, plan.rule, device)[1:]
+                                t, c = min(t, t2), min(c, c2)
                     except ValueError as e:  # the method refuses part of the sky
                         stop = f"refused: {str(e).splitlines()[0][:160]}"
                         rows.append(nan_row(note=stop))
@@ -504,7 +507,7 @@ def run_bench(out: Path, quick: bool = False, device: str = "cpu", as_json: bool
                         continue
                     last = (n_view, t)
                     rmse, de = errors_against(ref, images, lam, plan.white_percentile)
-                    rows.append(BenchRow(name, label, light, n_view, plan.rule, plan.dtype, t, prep, rmse, de,
+                    rows.append(BenchRow(name, label, light, n_view, plan.rule, plan.dtype, t, prep, rmse, de, cpu_s=c,
                                          note="" if math.isfinite(de) else "non-finite radiance", _n_images=n_img))
         methods = [r for r in rows if r.role == "method"]
         front = pareto_front(np.array([r.time_s for r in methods]), np.array([r.mean_delta_e for r in methods]))
@@ -522,6 +525,23 @@ def run_bench(out: Path, quick: bool = False, device: str = "cpu", as_json: bool
     return summary
 
 
+def _row_notes(rows: list[BenchRow], plan: BenchPlan) -> list[str]:
+    """One line per method setting whose rows were skipped or refused."""
+    out, seen = [], set()
+    for r in rows:
+        key = (r.method, r.settings)
+        if not r.note or key in seen:
+            continue
+        seen.add(key)
+        label = f"{r.method} {r.settings}".strip()
+        if r.note.startswith("skipped: predicted"):
+            out.append(f"{label}: rows from N = {r.view_samples} skipped, their time extrapolated linearly in N "
+                       f"exceeds the {plan.row_budget_s:g} s row budget ({r.note.split(': ', 1)[1].split(' >')[0]} for this one)")
+        else:
+            out.append(f"{label}: {r.note} (from N = {r.view_samples})")
+    return out
+
+
 def _summarise(rows: list[BenchRow], plan: BenchPlan, notes: list[str], device: str, quick: bool, machine: dict) -> dict:
     paper_m = max(plan.light_samples.get("trapezoid", ()) or (None,), key=lambda v: v or 0)
     summary = {
@@ -534,7 +554,7 @@ def _summarise(rows: list[BenchRow], plan: BenchPlan, notes: list[str], device: 
             "dtype": "float64",
             "delta_e_white": f"{plan.white_percentile:g}th percentile of the reference image's luminance",
         },
-        "notes": notes + sorted({f"{r.method} {r.settings}: {r.note}".replace("  ", " ") for r in rows if r.note}),
+        "notes": notes + _row_notes(rows, plan),
         "rows": [_row_dict(r) for r in rows],
     }
     for key, m, metric in (("ratio_paper_settings", paper_m, "mean_delta_e"), ("ratio_all_trapezoid", None, "mean_delta_e"),
