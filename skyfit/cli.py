@@ -117,10 +117,29 @@ def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projecti
     from .render import render_fisheye
 
     cam = _camera_from_args(args, size, projection)
+    extra = {}
+    if args.orders > 1:
+        extra["table_sizes"] = _table_sizes(getattr(args, "table_sizes", None))
     return render_fisheye(
         atm, cam, sun_zenith, sun_azimuth, integrator, altitude=args.altitude, view_samples=args.view_samples,
-        rule=args.rule, orders=args.orders, sun_disk=args.sun_disk,
+        rule=args.rule, orders=args.orders, sun_disk=args.sun_disk, **extra,
     )
+
+
+def _table_sizes(text: str | None):
+    """``R,MU,MUS,NU`` scattering-table sizes for --orders >= 2 (None: Bruneton 2017's 32,128,32,8)."""
+    from .scattering.bruneton_tables import TableSizes
+
+    if not text:
+        return None
+    try:
+        r, mu, mus, nu = (int(v) for v in text.split(","))
+    except ValueError:
+        raise UserError(f"--table-sizes must be R,MU,MUS,NU integers, got {text!r}") from None
+    try:
+        return TableSizes(scattering_r=r, scattering_mu=mu, scattering_mu_s=mus, scattering_nu=nu)
+    except ValueError as e:
+        raise UserError(f"--table-sizes: {e}") from None
 
 
 def _exr_payload(img, atm, integrator, args, sun_zenith, sun_azimuth, spectral: bool):
@@ -204,8 +223,8 @@ def cmd_render(args) -> int:
         raise UserError(f"--size must be in 2..8192, got {args.size}")
     if args.view_samples < 1:
         raise UserError(f"--view-samples must be >= 1, got {args.view_samples}")
-    if args.orders != 1:
-        raise UserError(f"--orders {args.orders}: only single scattering (--orders 1) is implemented so far")
+    if args.orders < 1:
+        raise UserError(f"--orders must be >= 1 (1 = single scattering), got {args.orders}")
     sun_zenith, sun_azimuth, sun_info = _sun_from_args(args)
     _check_render_numbers(args)
     lam = parse_wavelengths(args.wavelengths)
@@ -482,7 +501,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--integrator", default="taylor", help="NAME[:key=value,...], e.g. trapezoid:samples=64, taylor:a=0.45,b=0.45")
     r.add_argument("--view-samples", type=int, default=32, help="samples of the outer (view-ray) integral")
     r.add_argument("--rule", choices=RULES, default="trapezoid", help="outer quadrature rule")
-    r.add_argument("--orders", type=int, default=1, help="scattering orders (1 = single scattering)")
+    r.add_argument("--orders", type=int, default=1, help="scattering orders (1 = single scattering; >= 2: Bruneton's precomputed tables)")
+    r.add_argument("--table-sizes", help="R,MU,MUS,NU scattering-table sizes for --orders >= 2 (default 32,128,32,8)")
     r.add_argument("--wavelengths", default=DEFAULT_WAVELENGTHS, help="START:STOP:STEP or comma list [nm]")
     r.add_argument("--spectral", action="store_true", help="also write one channel L<nm> per wavelength")
     r.add_argument("--sun-disk", action="store_true", help="add the attenuated solar disc")

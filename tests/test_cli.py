@@ -63,8 +63,9 @@ BAD = {
     "wavelengths out of range": ("earth", ["--wavelengths", "100:200:10"], ["--wavelengths", "200-3000"]),
     "wavelengths duplicate": ("earth", ["--wavelengths", "550,550"], ["duplicates"]),
     "wavelengths outside a table": ("earth_clear_sky_eval", ["--wavelengths", "550,900"], ["penndorf", "900"]),
-    "orders 2": ("earth", ["--orders", "2"], ["--orders", "single scattering"]),  # until multiple scattering lands
     "orders 0": ("earth", ["--orders", "0"], ["--orders"]),
+    "bad table sizes": ("earth", ["--orders", "2", "--table-sizes", "8,31,8"], ["--table-sizes"]),
+    "odd table mu": ("earth", ["--orders", "2", "--table-sizes", "8,31,8,4"], ["scattering_mu"]),
     "sun zenith too large": ("earth", ["--sun-zenith", "200"], ["--sun-zenith", "200"]),
     "sun zenith negative": ("earth", ["--sun-zenith", "-5"], ["--sun-zenith"]),
     "sun zenith nan": ("earth", ["--sun-zenith", "nan"], ["--sun-zenith"]),

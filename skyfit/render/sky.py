@@ -21,23 +21,34 @@ def render_vectors(
     integrator: OpticalDepthIntegrator,
     altitude: float | Tensor = 0.0,
     orders: int = 1,
+    tables=None,
+    table_sizes=None,
     **kwargs,
 ) -> Tensor:
     """Spectral radiance seen from ``altitude`` along unit view vectors (local East, North, Up frame).
 
+    ``orders=1`` is single scattering integrated along each view ray with
+    ``integrator`` (:func:`skyfit.scattering.single_scattering`). ``orders >= 2``
+    uses Bruneton's precomputed tables (:mod:`skyfit.scattering.multiple`): they
+    are built here for ``atm`` (or passed in as ``tables`` to reuse them), and
+    ``integrator`` is not used.
+
     Args:
         view: unit view directions, shape (..., 3). [1]
         sun: unit direction to the sun, shape (3,) or (..., 3). [1]
-        integrator: optical-depth method.
+        integrator: optical-depth method (single scattering).
         altitude: observer height above the ground (may exceed the atmosphere). [m]
         orders: scattering orders; 1 = single scattering.
-        **kwargs: passed to :func:`skyfit.scattering.single_scattering`.
+        tables: a :class:`~skyfit.scattering.multiple.PrecomputedAtmosphere` to reuse (orders >= 2).
+        table_sizes: :class:`~skyfit.scattering.bruneton_tables.TableSizes` for a new precomputation.
+        **kwargs: passed to :func:`skyfit.scattering.single_scattering` (orders 1) or
+            :func:`skyfit.scattering.multiple.sky_radiance` (``ground``, ``sun_disk``, ``below_mu_s_min``).
 
     Returns:
         shape (..., W). [W/(m^2 sr nm)]
     """
-    if orders != 1:
-        raise ValueError(f"orders={orders}: only single scattering (orders=1) is implemented so far")
+    if not (isinstance(orders, int) and orders >= 1):
+        raise ValueError(f"orders must be an integer >= 1, got {orders!r}")
     view = torch.as_tensor(view, dtype=atm.dtype, device=atm.device)
     sun = torch.as_tensor(sun, dtype=atm.dtype, device=atm.device)
     # mu, mu_s are the Up components; nu = v . s needs no angles, so it is smooth at the zenith.
@@ -45,7 +56,16 @@ def render_vectors(
     mu_s = torch.clamp(sun[..., 2], -1.0, 1.0)
     nu = torch.clamp((view * sun).sum(-1), -1.0, 1.0)
     r = atm.bottom_radius + torch.as_tensor(altitude, dtype=atm.dtype, device=atm.device)
-    return single_scattering(atm, r, mu, mu_s, nu, integrator, **kwargs)
+    if orders == 1:
+        return single_scattering(atm, r, mu, mu_s, nu, integrator, **kwargs)
+    from ..scattering.multiple import precompute, sky_radiance
+
+    if tables is None:
+        tables = precompute(atm, orders=orders, sizes=table_sizes)
+    elif tables.orders < orders:
+        raise ValueError(f"tables hold {tables.orders} orders, {orders} requested")
+    extra = {k: kwargs[k] for k in ("ground", "sun_disk", "below_mu_s_min") if k in kwargs}
+    return sky_radiance(tables, atm, r, mu, mu_s, nu, orders=None if tables.orders == orders else orders, **extra)
 
 
 def render_directions(
