@@ -32,6 +32,7 @@ SETTINGS = [
     ("gauss", {"samples": 32}),
     ("gauss", {"samples": 128}),
     ("taylor", {}),
+    ("spline", {"grid": "paper", "space": "values", "distance_interp": "linear"}),
     ("spline", {}),
     ("spline", {"kind": "linear"}),
     ("spline", {"kind": "catmull_rom"}),
@@ -102,7 +103,23 @@ def main(argv=None):
             lines.append(f"| {name} | {s} | refused | | | | | {note} |")
         else:
             lines.append(f"| {name} | {s} | {m8:.2e} | {d8:.2e} | {m1:.2e} | {d1:.2e} | {m32:.2e} | {note} |")
-    lines.append("")
+    lines += [
+        "",
+        "Notes:",
+        "",
+        "- `taylor` is Gałaj 2021 eq. 17 with a = b = 0.45: exact for vertical rays, a few percent for the",
+        "  Rayleigh layer near the horizon; for the Mie layer (H = 1.2 km) at grazing incidence it is out of",
+        "  its regime and the exact bound L exp(-h_low/H) caps it (see skyfit/transmittance/taylor.py).",
+        "  `skyfit calibrate-integrator` fits (a, b) per atmosphere and layer (docs/integrator_calibration.md).",
+        "- `spline` with `grid=paper, space=values, distance_interp=linear` is the paper's layout taken literally;",
+        "  the default is the corrected variant documented in docs/spline.md.",
+        "- `bruneton_lut` takes columns as differences of two table lookups (Bruneton 2017 GetTransmittance), so",
+        "  short segments near the ground (1 m here) have large *relative* error while the optical-depth error",
+        "  stays below ~1e-3 of the larger column (docs/lut_chapman_fog.md).",
+        "- `height_fog` (Ishiyama 2018) is flat-Earth and refuses most of this grid; its accuracy inside its",
+        "  regime is in docs/lut_chapman_fog.md.",
+        "",
+    ]
     with open(args.out, "w") as f:
         f.write("\n".join(lines))
     print("\n".join(lines))

@@ -26,6 +26,14 @@ BOUNDS = [
     # Rayleigh near the horizon, and out of its regime for the Mie layer at grazing
     # incidence, where the exact upper bound L exp(-h_low / H) caps it (docs/accuracy.md).
     ("taylor", {}, 0.5, 11.0),
+    ("spline", {}, 7e-5, 5e-4),
+    ("spline", {"kind": "akima"}, 5e-6, 3e-4),
+    ("spline", {"height_points": 200, "distance_points": 80}, 1e-6, 1e-5),
+    ("chapman", {}, 2e-3, 3e-4),
+    # Column = difference of two lookups: 1 m segments near the ground carry the table's
+    # interpolation error of the ~8 km columns they subtract (docs/lut_chapman_fog.md).
+    ("bruneton_lut", {}, 4.5, 4.5),
+    ("bruneton_lut", {"mu_size": 1024, "r_size": 256}, 0.45, 0.45),
 ]
 
 
@@ -65,6 +73,12 @@ def test_taylor_is_exact_for_vertical_rays(grid):
     vertical = np.array([abs(c[1]) == 1.0 for c in cases])
     assert vertical.sum() >= 6
     assert rel[vertical].max() < 1e-9
+
+
+def test_bruneton_lut_median_error_is_small(grid):
+    """Away from the short-segment cancellation the LUT is accurate: median over the grid."""
+    rel = relative_column_error(_columns("bruneton_lut", {}, grid), grid[3])
+    assert np.median(rel) < 5e-4
 
 
 def test_quadrature_converges_with_samples(grid):
