@@ -106,7 +106,8 @@ def main(argv=None):
         if m8 is None:
             lines.append(f"| {name} | {s} | failed | | | | | {note} |")
         else:
-            lines.append(f"| {name} | {s} | {m8:.2e} | {d8:.2e} | {m1:.2e} | {d1:.2e} | {"fails" if np.isnan(m32) else f"{m32:.2e}"} | {note} |")
+            f32 = "fails" if np.isnan(m32) else f"{m32:.2e}"
+            lines.append(f"| {name} | {s} | {m8:.2e} | {d8:.2e} | {m1:.2e} | {d1:.2e} | {f32} | {note} |")
     lines += [
         "",
         "Notes:",
