@@ -44,8 +44,19 @@ def parse_wavelengths(text: str) -> np.ndarray:
 
 
 def parse_integrator(text: str):
-    """``NAME`` or ``NAME:key=value,key=value`` -> integrator instance."""
+    """``NAME`` or ``NAME:key=value,key=value`` -> integrator instance.
+
+    A value ``v1/v2`` is a list, one per layer (Rayleigh/Mie), e.g. the per-layer
+    Taylor pairs of ``skyfit calibrate-integrator``: ``taylor:a=0.367/0.424,b=0.359/0.116``.
+    """
     from .transmittance import make_integrator
+
+    def number(val: str):
+        val = val.strip()
+        try:
+            return int(val) if val.lstrip("-").isdigit() else float(val)
+        except ValueError:
+            return val
 
     name, _, opts = text.partition(":")
     settings: dict = {}
@@ -53,10 +64,7 @@ def parse_integrator(text: str):
         key, eq, val = item.partition("=")
         if not eq:
             raise UserError(f"integrator option must be key=value, got {item!r}")
-        try:
-            settings[key.strip()] = int(val) if val.strip().lstrip("-").isdigit() else float(val)
-        except ValueError:
-            settings[key.strip()] = val.strip()
+        settings[key.strip()] = [number(v) for v in val.split("/")] if "/" in val else number(val)
     try:
         return make_integrator(name.strip(), **settings)
     except ValueError as e:
@@ -466,6 +474,48 @@ def cmd_calibrate_integrator(args) -> int:
     return 0
 
 
+def cmd_export_lut(args) -> int:
+    """Precompute Bruneton's tables for a fitted atmosphere and write them as LUTs (docs/luts.md)."""
+    import tempfile
+
+    import torch
+
+    from .export import atmosphere_from_result, export_luts
+    from .fit.run import read_result
+    from .scattering.bruneton_tables import TableSizes
+    from .scattering.multiple import precompute
+
+    if args.orders < 1:
+        raise UserError(f"--orders must be >= 1 (1 = single scattering), got {args.orders}")
+    res = read_result(args.result)
+    if args.wavelengths is not None:
+        lam = parse_wavelengths(args.wavelengths)
+    else:
+        lam = np.asarray(res["model"].get("wavelengths_nm") or parse_wavelengths(DEFAULT_WAVELENGTHS), float)
+    sizes = _table_sizes(args.table_sizes) or TableSizes()
+    out = Path(args.out)
+    # Refuse an unwritable --out before the (long) precomputation.
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out} exists and is not a directory")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryDirectory(dir=out.parent).cleanup()
+    except OSError as e:
+        raise UserError(f"--out {out}: cannot write there ({e.strerror or e})") from None
+    try:
+        atm = atmosphere_from_result(res, lam)
+    except (KeyError, TypeError) as e:
+        raise UserError(f"{args.result}: malformed result ({e})") from None
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        tables = precompute(atm, orders=args.orders, sizes=sizes)
+    export_luts(tables, atm, out, format=args.format, rgb=args.rgb)
+    info = {"out": str(out), "format": args.format, "orders": args.orders, "seconds": round(time.perf_counter() - t0, 3),
+            "channels": "rgb" if args.rgb else "spectral", "wavelengths_nm": [float(v) for v in lam]}
+    print(json.dumps(info) if args.json else f"wrote {out} ({args.format}, {args.orders} orders) in {info['seconds']:.1f} s")
+    return 0
+
+
 # -- entry point ---------------------------------------------------------------
 class _Parser(argparse.ArgumentParser):
     """argparse with CONTRACT.md's error form: one line on stderr, exit status 2 (no usage block)."""
@@ -540,6 +590,19 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--quick", action="store_true", help="coarser domain, fewer rays and candidates (seconds, for CI)")
     c.add_argument("--json", action="store_true")
     c.set_defaults(func=cmd_calibrate_integrator)
+
+    from .export import FORMATS
+
+    e = sub.add_parser("export-lut", help="precompute a fitted atmosphere's tables and write them as LUTs (docs/luts.md)")
+    e.add_argument("result", help="RESULT.json written by skyfit fit")
+    e.add_argument("--out", required=True, help="output directory")
+    e.add_argument("--format", choices=FORMATS, default="exr", help="exr (OpenEXR, float32) or npz")
+    e.add_argument("--orders", type=int, default=4, help="scattering orders in the tables (default 4)")
+    e.add_argument("--table-sizes", help="R,MU,MUS,NU scattering-table sizes (default 32,128,32,8)")
+    e.add_argument("--wavelengths", help="START:STOP:STEP or comma list [nm] (default: the fit's model wavelengths)")
+    e.add_argument("--rgb", action="store_true", help="linear sRGB channels instead of one per wavelength")
+    e.add_argument("--json", action="store_true")
+    e.set_defaults(func=cmd_export_lut)
     return p
 
 

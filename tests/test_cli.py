@@ -282,3 +282,16 @@ def test_render_bad_time_or_location(args, keyword, tmp_path, capsys):
     code, _, err = _run(["render", "earth", "--out", str(out), "--size", "8", *args], capsys)
     assert code == 2 and keyword in err and "\n" not in err.strip()
     assert not out.exists()
+
+
+def test_render_per_layer_taylor_pairs(tmp_path, capsys):
+    """taylor:a=A_R/A_M,b=B_R/B_M gives one (a, b) per layer; the header records both."""
+    out = tmp_path / "t.exr"
+    code, _, _ = _run(["render", "earth", "--out", str(out), *FAST, "--sun-zenith", "40",
+                       "--integrator", "taylor:a=0.367/0.424,b=0.359/0.116"], capsys)
+    assert code == 0
+    _, meta = read_exr(out)
+    assert meta["integrator"]["a"] == [0.367, 0.424] and meta["integrator"]["b"] == [0.359, 0.116]
+    code, _, err = _run(["render", "earth", "--out", str(tmp_path / "u.exr"), *FAST, "--sun-zenith", "40",
+                         "--integrator", "taylor:a=0.3/0.4/0.5"], capsys)
+    assert code == 2 and "one per layer" in err
