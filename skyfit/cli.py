@@ -127,7 +127,9 @@ def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projecti
     cam = _camera_from_args(args, size, projection)
     extra = {}
     if args.orders > 1:
-        extra["table_sizes"] = _table_sizes(getattr(args, "table_sizes", None))
+        extra["multiple"] = getattr(args, "multiple", "bruneton")
+        if extra["multiple"] == "bruneton":
+            extra["table_sizes"] = _table_sizes(getattr(args, "table_sizes", None))
     return render_fisheye(
         atm, cam, sun_zenith, sun_azimuth, integrator, altitude=args.altitude, view_samples=args.view_samples,
         rule=args.rule, orders=args.orders, sun_disk=args.sun_disk, **extra,
@@ -552,6 +554,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--view-samples", type=int, default=32, help="samples of the outer (view-ray) integral")
     r.add_argument("--rule", choices=RULES, default="trapezoid", help="outer quadrature rule")
     r.add_argument("--orders", type=int, default=1, help="scattering orders (1 = single scattering; >= 2: Bruneton's precomputed tables)")
+    r.add_argument("--multiple", choices=("bruneton", "hillaire"), default="bruneton",
+                   help="with --orders >= 2: Bruneton's full orders, or Hillaire 2020's cheaper approximation")
     r.add_argument("--table-sizes", help="R,MU,MUS,NU scattering-table sizes for --orders >= 2 (default 32,128,32,8)")
     r.add_argument("--wavelengths", default=DEFAULT_WAVELENGTHS, help="START:STOP:STEP or comma list [nm]")
     r.add_argument("--spectral", action="store_true", help="also write one channel L<nm> per wavelength")
