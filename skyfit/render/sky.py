@@ -23,6 +23,7 @@ def render_vectors(
     orders: int = 1,
     tables=None,
     table_sizes=None,
+    multiple: str = "bruneton",
     **kwargs,
 ) -> Tensor:
     """Spectral radiance seen from ``altitude`` along unit view vectors (local East, North, Up frame).
@@ -31,7 +32,10 @@ def render_vectors(
     ``integrator`` (:func:`skyfit.scattering.single_scattering`). ``orders >= 2``
     uses Bruneton's precomputed tables (:mod:`skyfit.scattering.multiple`): they
     are built here for ``atm`` (or passed in as ``tables`` to reuse them), and
-    ``integrator`` is not used.
+    ``integrator`` is not used. ``multiple="hillaire"`` instead adds Hillaire
+    2020's multiple-scattering LUT to the directly integrated single scattering
+    (:mod:`skyfit.scattering.hillaire`; ``tables`` may then be a prebuilt LUT):
+    cheaper, a few percent off for a high sun (docs/hillaire.md).
 
     Args:
         view: unit view directions, shape (..., 3). [1]
@@ -41,6 +45,7 @@ def render_vectors(
         orders: scattering orders; 1 = single scattering.
         tables: a :class:`~skyfit.scattering.multiple.PrecomputedAtmosphere` to reuse (orders >= 2).
         table_sizes: :class:`~skyfit.scattering.bruneton_tables.TableSizes` for a new precomputation.
+        multiple: "bruneton" (full orders) or "hillaire" (approximation) for orders >= 2.
         **kwargs: passed to :func:`skyfit.scattering.single_scattering` (orders 1) or
             :func:`skyfit.scattering.multiple.sky_radiance` (``ground``, ``sun_disk``, ``below_mu_s_min``).
 
@@ -58,6 +63,12 @@ def render_vectors(
     r = atm.bottom_radius + torch.as_tensor(altitude, dtype=atm.dtype, device=atm.device)
     if orders == 1:
         return single_scattering(atm, r, mu, mu_s, nu, integrator, **kwargs)
+    if multiple == "hillaire":
+        from ..scattering.hillaire import hillaire_sky_radiance
+
+        return hillaire_sky_radiance(atm, r, mu, mu_s, nu, integrator, lut=tables, **kwargs)
+    if multiple != "bruneton":
+        raise ValueError(f"unknown multiple-scattering method {multiple!r}; valid: bruneton, hillaire")
     from ..scattering.multiple import precompute, sky_radiance
 
     if tables is None:
