@@ -101,7 +101,7 @@ FULL_PLAN = BenchPlan(
     reference_view_samples=128,
     row_budget_s=60.0,
 )
-"""``skyfit bench``: a 128 x 128 sky at three sun zeniths, N = 8 ... 1024 (several minutes on 2 cores)."""
+"""``skyfit bench``: a 128 x 128 sky at three sun zeniths, N = 8 ... 1024 (15-30 minutes on 2 cores; a minute on a GPU)."""
 
 QUICK_PLAN = BenchPlan(
     size=32,
@@ -515,6 +515,8 @@ def run_bench(out: Path, quick: bool = False, device: str = "cpu", as_json: bool
             r.pareto = bool(f)
         machine["load_average_1min_end"] = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
         summary = _summarise(rows, plan, notes, device, quick, machine)
+        if torch.get_num_threads() != BENCH_THREADS:
+            summary["command"] += f" (run with {torch.get_num_threads()} torch thread(s), not BENCH_THREADS = {BENCH_THREADS})"
         _write_outputs(out, rows, summary, plan)
     finally:
         torch.set_num_threads(old_threads)
