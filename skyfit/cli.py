@@ -417,7 +417,9 @@ def _add_fit_parsers(sub) -> None:
 def cmd_bench(args) -> int:
     from .bench import run_bench
 
-    run_bench(out=Path(args.out), quick=args.quick, device=_check_device(args.device), as_json=args.json)
+    if args.threads is not None and args.threads < 1:
+        raise UserError(f"--threads must be >= 1, got {args.threads}")
+    run_bench(out=Path(args.out), quick=args.quick, device=_check_device(args.device), as_json=args.json, threads=args.threads)
     return 0
 
 
@@ -576,6 +578,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", default="bench_out")
     b.add_argument("--quick", action="store_true", help="a reduced table for CI")
     b.add_argument("--device", default="cpu")
+    b.add_argument("--threads", type=int, help="torch CPU threads (default: the bench's own choice, 2)")
     b.add_argument("--json", action="store_true")
     b.set_defaults(func=cmd_bench)
 
