@@ -37,12 +37,12 @@ from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from ..atmosphere import Atmosphere
-from ..geometry import atmosphere_segment, distance_to_bottom, distance_to_top, point_along_ray, ray_hits_ground, sun_cosine_along_ray
+from ..geometry import distance_to_bottom, distance_to_top, point_along_ray, ray_hits_ground, sun_cosine_along_ray
 from ..quadrature import nodes_weights, validate_rule
 from ..transmittance import ColumnFn, OpticalDepthIntegrator
 from .bruneton_tables import TableSizes, extinction_matrix3, profile_densities
 from .multiple import _columns, _Ctx, transmittance_columns_table
-from .single import single_scattering, sun_ray_cosine, sun_visible_fraction
+from .single import single_scattering, sun_ray_cosine, sun_visible_fraction, view_ray_samples
 
 __all__ = ["HillaireLUT", "fibonacci_sphere", "hillaire_lut", "hillaire_multiple", "hillaire_sky_radiance", "lookup_psi"]
 
@@ -202,18 +202,10 @@ def hillaire_multiple(
     r, mu, mu_s, nu = (t.reshape(-1) for t in (r, mu, mu_s, nu))
     if column_fn is None:
         column_fn = integrator.prepare(atm.scale_heights, atm.bottom_radius, atm.top_radius)
-    Rb, Rt = atm.bottom_radius, atm.top_radius
+    Rb = atm.bottom_radius
     x, w = nodes_weights(rule, view_samples, dtype, device)
-    start, end, _ = atmosphere_segment(r, mu, Rb, Rt)
-    seg = end - start
-    r0, mu0 = point_along_ray(r, mu, start)
-    r0 = torch.clamp_max(r0, Rt)
-    mus0 = sun_cosine_along_ray(r, mu_s, nu, start, r0)
-    s = seg.unsqueeze(-1) * x
-    r0e, mu0e, mus0e, nue = (t.unsqueeze(-1) for t in (r0, mu0, mus0, nu))
-    r_j, _ = point_along_ray(r0e, mu0e, s)
-    mus_j = sun_cosine_along_ray(r0e, mus0e, nue, s, r_j)
-    trans = torch.exp(column_fn(r0e, mu0e, s) @ -atm.extinction_matrix)  # (n, N, W)
+    _, seg, r0, mu0, _, s, r_j, mus_j = view_ray_samples(atm, r, mu, mu_s, nu, x)
+    trans = torch.exp(column_fn(r0.unsqueeze(-1), mu0.unsqueeze(-1), s) @ -atm.extinction_matrix)  # (n, N, W)
     dens = torch.exp((r_j - Rb).unsqueeze(-1) * -(1.0 / atm.scale_heights))  # (n, N, 2)
     sigma_s = dens @ torch.stack([atm.rayleigh_scattering, atm.mie_scattering])  # (n, N, W)
     psi = lookup_psi(lut, r_j, mus_j, Rb)

@@ -11,6 +11,7 @@ smooth and sun-below-horizon skies well defined.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -66,7 +67,26 @@ def transmittance_to_sun(column_fn: ColumnFn, atm: Atmosphere, r: Tensor, mu_s: 
     return torch.exp(-col @ atm.extinction_matrix) * vis.unsqueeze(-1)
 
 
-def _render_chunk(atm, column_fn, r, mu, mu_s, nu, x, w, ground, sun_disk):
+class ViewRaySamples(NamedTuple):
+    """Sample points of the outer (view-ray) integral; per-ray fields (n,), per-sample fields (n, N)."""
+
+    hits: Tensor  # the ray ends on the ground
+    seg: Tensor  # length of the part inside the atmosphere [m]
+    r0: Tensor  # radius where that part starts (the observer, or the entry from space) [m]
+    mu0: Tensor  # view cosine there [1]
+    mus0: Tensor  # sun cosine there [1]
+    s: Tensor  # distances of the samples from the start [m]
+    r_j: Tensor  # radii of the samples [m]
+    mus_j: Tensor  # sun cosines at the samples [1]
+
+
+def view_ray_samples(atm: Atmosphere, r: Tensor, mu: Tensor, mu_s: Tensor, nu: Tensor, x: Tensor) -> ViewRaySamples:
+    """Place the nodes ``x`` (on [0, 1]) of the outer rule on the in-atmosphere part of each view ray.
+
+    Args:
+        r, mu, mu_s, nu: observer radius and cosines, shape (n,). [m], [1]
+        x: quadrature nodes on [0, 1], shape (N,).
+    """
     Rb, Rt = atm.bottom_radius, atm.top_radius
     start, end, hits = atmosphere_segment(r, mu, Rb, Rt)
     seg = end - start
@@ -76,11 +96,17 @@ def _render_chunk(atm, column_fn, r, mu, mu_s, nu, x, w, ground, sun_disk):
     # (zero-length) segments the integrators see inside the atmosphere, which tables require.
     r0 = torch.clamp_max(r0, Rt)
     mus0 = sun_cosine_along_ray(r, mu_s, nu, start, r0)
-    # Sample points y_j along the view ray, shape (n, N).
     s = seg.unsqueeze(-1) * x
     r0e, mu0e, mus0e, nue = (t.unsqueeze(-1) for t in (r0, mu0, mus0, nu))
     r_j, _ = point_along_ray(r0e, mu0e, s)
     mus_j = sun_cosine_along_ray(r0e, mus0e, nue, s, r_j)
+    return ViewRaySamples(hits, seg, r0, mu0, mus0, s, r_j, mus_j)
+
+
+def _render_chunk(atm, column_fn, r, mu, mu_s, nu, x, w, ground, sun_disk):
+    Rb, Rt = atm.bottom_radius, atm.top_radius
+    hits, seg, r0, mu0, mus0, s, r_j, mus_j = view_ray_samples(atm, r, mu, mu_s, nu, x)
+    r0e, mu0e = r0.unsqueeze(-1), mu0.unsqueeze(-1)
     # T(x, y_j) T(y_j, sun) = exp(-(column(x, y_j) + column(y_j, sun)) @ extinction): one
     # matmul and one exp over wavelengths; the sun's visible fraction goes into the weights.
     mus_c = sun_ray_cosine(r_j, mus_j, Rb)
