@@ -33,8 +33,9 @@ def main() -> None:
     ap.add_argument("--config", default=str(Path(__file__).resolve().parents[1] / "skyfit" / "configs" / "earth_clear_sky_eval.yaml"))
     ap.add_argument("--free", default="rayleigh_scale,mie_beta_550,mie_scale_height,mie_g,sun_azimuth_offset")
     ap.add_argument("--loss", default="log")
-    ap.add_argument("--integrator", default="taylor")
-    ap.add_argument("--view-samples", type=int, default=32)
+    ap.add_argument("--integrator", default="chapman")
+    ap.add_argument("--view-samples", type=int, default=16)
+    ap.add_argument("--rule", default="gauss")
     ap.add_argument("--orders", type=int, default=1)
     ap.add_argument("--starts", type=int, default=1)
     ap.add_argument("--threads", type=int, default=1)
@@ -44,7 +45,7 @@ def main() -> None:
     folders = sorted(day.glob("2013-05-27___*")) if args.captures == "all" else [
         day / f"2013-05-27___{c}.00" for c in args.captures.split(",")]
     cfg = load_yaml(args.config)
-    model = SkyModel(parse_integrator(args.integrator), orders=args.orders, view_samples=args.view_samples)
+    model = SkyModel(parse_integrator(args.integrator), orders=args.orders, view_samples=args.view_samples, rule=args.rule)
     for folder in folders:
         obs = observation_from_kider(folder)
         sun = dict(cfg.get("sun") or {})

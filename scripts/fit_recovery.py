@@ -48,6 +48,11 @@ def observation(values, sigma, view, sun_zenith_deg, sun_azimuth_deg, lam):
 
 def run_case(name, args) -> dict:
     cfg, truth, (sz, sa) = CASES[name]
+    truth, start, free = dict(truth), dict(START), list(FREE)
+    if args.aod:  # fit the optical depth beta x H_M instead of the extinction coefficient
+        truth["mie_aod_550"] = truth.pop("mie_beta_550") * truth["mie_scale_height"]
+        start["mie_aod_550"] = start.pop("mie_beta_550") * start["mie_scale_height"]
+        free = [("mie_aod_550" if n == "mie_beta_550" else n) for n in free]
     lam = np.linspace(400.0, 700.0, args.wavelengths)
     base = load_atmosphere(cfg, lam)
     cam = FisheyeCamera(args.size)
@@ -58,8 +63,8 @@ def run_case(name, args) -> dict:
     n = view.shape[0]
     ones = torch.ones(n, len(lam), dtype=torch.float64)
     truth_model = SkyModel(parse_integrator(args.truth_integrator or args.integrator),
-                           view_samples=args.truth_view_samples or args.view_samples)
-    p_true = Parameterisation(base, FREE, values=truth)
+                           view_samples=args.truth_view_samples or args.view_samples, rule=args.truth_rule or args.rule)
+    p_true = Parameterisation(base, free, values=truth)
     t0 = time.perf_counter()
     with torch.no_grad():
         clean = FitProblem(p_true, truth_model, [observation(ones, ones, view, sz, sa, lam)], make_loss("squared")).predict(
@@ -68,21 +73,21 @@ def run_case(name, args) -> dict:
     gen = torch.Generator().manual_seed(args.seed)
     noisy = clean * (1 + args.noise * torch.randn(clean.shape, generator=gen, dtype=torch.float64))
     obs = observation(noisy, args.noise * clean, view, sz, sa, lam)
-    model = SkyModel(parse_integrator(args.integrator), view_samples=args.view_samples)
-    param = Parameterisation(base, FREE, values=START)
+    model = SkyModel(parse_integrator(args.integrator), view_samples=args.view_samples, rule=args.rule)
+    param = Parameterisation(base, free, values=start)
     problem = FitProblem(param, model, [obs], make_loss("squared"))
     t0, c0 = time.perf_counter(), time.process_time()
     res = fit(problem, FitOptions(starts=args.starts, adam_steps=args.adam_steps, max_iter=args.max_iter, progress=args.progress))
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
-    rel = {k: res.parameters[k] / truth[k] - 1 for k in FREE}
+    rel = {k: res.parameters[k] / truth[k] - 1 for k in free}
     return {
         "case": name, "size": args.size, "wavelengths": args.wavelengths, "samples": n, "integrator": args.integrator,
-        "view_samples": args.view_samples, "truth_integrator": args.truth_integrator or args.integrator,
+        "view_samples": args.view_samples, "rule": args.rule, "truth_integrator": args.truth_integrator or args.integrator,
         "threads": torch.get_num_threads(), "render_seconds": round(t_render, 2), "fit_seconds": round(seconds, 2),
         "fit_cpu_seconds": round(cpu, 2), "load_average": [round(v, 2) for v in os.getloadavg()],
         "evaluations": res.convergence["evaluations_total"], "seconds_per_evaluation": round(seconds / max(res.convergence["evaluations_total"], 1), 3),
         "reason": res.convergence["reason"], "iterations": res.convergence["iterations"], "loss": res.loss,
-        "truth": truth, "recovered": {k: res.parameters[k] for k in FREE}, "relative_error": rel,
+        "truth": truth, "recovered": {k: res.parameters[k] for k in free}, "relative_error": rel,
         "mie_g_abs_error": res.parameters["mie_g"] - truth["mie_g"],
     }
 
@@ -91,8 +96,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--wavelengths", type=int, default=16, help="number of wavelengths in 400-700 nm")
-    ap.add_argument("--integrator", default="taylor")
-    ap.add_argument("--view-samples", type=int, default=32)
+    ap.add_argument("--integrator", default="chapman")
+    ap.add_argument("--view-samples", type=int, default=16)
+    ap.add_argument("--rule", default="gauss", help="outer (view-ray) quadrature rule of the fit")
+    ap.add_argument("--truth-rule", help="default: the fit's")
     ap.add_argument("--truth-integrator", help="default: the fit's")
     ap.add_argument("--truth-view-samples", type=int)
     ap.add_argument("--noise", type=float, default=0.01)
@@ -104,6 +111,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--cases", default="earth,hazy")
     ap.add_argument("--progress", action="store_true")
+    ap.add_argument("--aod", action="store_true", help="fit mie_aod_550 instead of mie_beta_550")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     for name in args.cases.split(","):

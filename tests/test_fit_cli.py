@@ -19,7 +19,7 @@ from skyfit.cli import main
 from skyfit.io import read_exr, write_exr
 
 KIDER = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kider2014" / "2013-05-27" / "2013-05-27___09.30.00"
-FAST = ["--integrator", "gauss:samples=8", "--view-samples", "4", "--starts", "1", "--max-iter", "30"]
+FAST = ["--integrator", "gauss:samples=8", "--view-samples", "4", "--rule", "trapezoid", "--starts", "1", "--max-iter", "30"]
 TRUE_G = 0.7
 
 
@@ -109,7 +109,7 @@ def test_fit_section_of_the_config_and_rgb_data(sky, tmp_path, capsys):
     cfg = tmp_path / "fit.yaml"
     text = (Path(__file__).resolve().parents[1] / "skyfit" / "configs" / "earth.yaml").read_text()
     cfg.write_text(text + "\nfit:\n  free: [mie_g, exposure]\n  integrator: gauss:samples=8\n  view_samples: 4\n"
-                   "  starts: 1\n  max_iter: 30\n")
+                   "  rule: trapezoid\n  starts: 1\n  max_iter: 30\n")
     out = tmp_path / "RESULT.json"
     rc, so, se = _run(["fit", sky / "rgb.exr", "--config", cfg, "--out", out, "--json", "--no-plots"], capsys)
     assert rc == 0, se

@@ -16,7 +16,7 @@ from skyfit.atmosphere import load_atmosphere
 from skyfit.fit import ATMOSPHERE_PARAMETERS, NUISANCE, PARAMETERS, FitError, Parameterisation
 
 LAM = np.array([380.0, 450.0, 550.0, 650.0, 720.0])
-ALL_ATM = [n for n in ATMOSPHERE_PARAMETERS if n != "ground_albedo_scale"]
+ALL_ATM = [n for n in ATMOSPHERE_PARAMETERS if n not in ("ground_albedo_scale", "mie_aod_550")]
 
 
 @pytest.fixture(scope="module")
@@ -171,3 +171,17 @@ def test_spread_starts_are_seeded_and_inside_the_typical_spans(earth):
     lo, hi = PARAMETERS["mie_g"].typical
     thirds = sorted(int((p.physical_dict(x)["mie_g"] - lo) / (hi - lo) * 3) for x in a[1:])
     assert thirds == [0, 1, 2]
+
+
+def test_aerosol_optical_depth_parameterisation(eval_atm):
+    """mie_aod_550 = beta_550 x H_M: fitting it with H_M keeps the optical depth when H_M moves."""
+    p = Parameterisation(eval_atm, ["mie_aod_550", "mie_scale_height"], values={"mie_aod_550": 0.12, "mie_scale_height": 1500.0})
+    a = p.atmosphere(p.to_physical(p.initial_vector()))
+    expect = 0.12 / 1500.0 * (torch.tensor(LAM, dtype=torch.float64) / 550.0) ** -0.8
+    assert_close(a.mie_extinction, expect, rtol=1e-12, atol=0.0)
+    d = p.physical_dict(p.initial_vector())
+    assert d["mie_beta_550"] == pytest.approx(0.12 / 1500.0, rel=1e-12)
+    # default: the config's optical depth, 0.04 x 0.55^-0.8 (Angstrom beta is the optical depth at 1 um)
+    assert Parameterisation(eval_atm, ["mie_aod_550"]).defaults["mie_aod_550"] == pytest.approx(0.04 * 0.55**-0.8, rel=1e-12)
+    with pytest.raises(FitError, match="not both"):
+        Parameterisation(eval_atm, ["mie_beta_550", "mie_aod_550"])

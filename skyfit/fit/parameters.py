@@ -101,6 +101,8 @@ PARAMETERS: dict[str, ParameterSpec] = {
                       description="Rayleigh density scale height"),
         ParameterSpec("mie_beta_550", "1/m", "log", 1e-5, 0.0, math.inf, (3e-6, 8e-5),
                       description="sea-level aerosol extinction coefficient at 550 nm"),
+        ParameterSpec("mie_aod_550", "1", "log", 0.1, 0.0, math.inf, (0.02, 0.4),
+                      description="aerosol optical depth at 550 nm, beta_550 x H_M (instead of mie_beta_550)"),
         ParameterSpec("mie_angstrom_alpha", "1", "interval", 1.0, -1.0, 4.0, (0.2, 1.8),
                       description="Angstrom exponent: extinction ~ (lambda / 550 nm)^-alpha"),
         ParameterSpec("mie_ssa", "1", "interval", 1.0, 0.0, 1.0, (0.75, 0.98),
@@ -206,6 +208,8 @@ class Parameterisation:
         self.per_observation = tuple(per)
         if "ground_albedo" in self.free and "ground_albedo_scale" in self.free:
             raise FitError("free ground_albedo (grey) or ground_albedo_scale (of the config's spectrum), not both")
+        if "mie_beta_550" in self.free and "mie_aod_550" in self.free:
+            raise FitError("free mie_beta_550 (extinction) or mie_aod_550 (optical depth = beta x H_M), not both")
 
         # Base spectral shapes: the fitted numbers act on them.
         self._lam = base.wavelengths
@@ -226,6 +230,7 @@ class Parameterisation:
             "rayleigh_scale": 1.0,
             "rayleigh_scale_height": float(base.rayleigh_scale_height),
             "mie_beta_550": b550,
+            "mie_aod_550": b550 * float(base.mie_scale_height),
             "mie_angstrom_alpha": alpha0,
             "mie_ssa": float(ratio.mean()) if bool((ext > 0).any()) else 0.9,
             "mie_scale_height": float(base.mie_scale_height),
@@ -323,10 +328,12 @@ class Parameterisation:
         """Plain floats of every parameter, SI units; per-observation ones as lists when there are several observations."""
         out = {}
         with torch.no_grad():
-            for n, t in self.to_physical(x).items():
+            phys = self.to_physical(x)
+            for n, t in phys.items():
                 t = t.detach().cpu()
                 # per-observation values as lists (one per observation); a single observation's as a number
                 out[n] = t.tolist() if t.ndim and self.n_observations > 1 else float(t.reshape(-1)[0]) if t.ndim else float(t)
+            out.update(self.derived(phys))  # mie_beta_550 and mie_aod_550 consistent with the scale height
         return out
 
     def free_dict(self, x: Tensor) -> dict[str, float | list[float]]:
@@ -353,11 +360,12 @@ class Parameterisation:
             kw["mie_scale_height"] = T(phys["mie_scale_height"]).reshape(())
         if "mie_g" in touched:
             kw["mie_g"] = T(phys["mie_g"]).reshape(())
-        if touched & {"mie_beta_550", "mie_angstrom_alpha", "mie_ssa"}:
+        if touched & {"mie_beta_550", "mie_aod_550", "mie_angstrom_alpha", "mie_ssa"}:
             ext = b.mie_extinction
-            if touched & {"mie_beta_550", "mie_angstrom_alpha"}:
+            if touched & {"mie_beta_550", "mie_aod_550", "mie_angstrom_alpha"}:
+                beta = self._beta_550(phys, touched)
                 # beta_550 (lambda / 550)^-alpha times the base's departure from a power law (1 for Angstrom configs)
-                ext = T(phys["mie_beta_550"]) * (self._lam / 550.0) ** (-T(phys["mie_angstrom_alpha"])) * self._mie_shape
+                ext = beta * (self._lam / 550.0) ** (-T(phys["mie_angstrom_alpha"])) * self._mie_shape
             scat = ext * (T(phys["mie_ssa"]) if "mie_ssa" in touched else self._ssa_ratio)
             kw["mie_extinction"], kw["mie_scattering"] = ext, scat
         if "ground_albedo" in touched and "ground_albedo_scale" in touched:
@@ -373,10 +381,18 @@ class Parameterisation:
         except ValueError as e:  # cannot happen inside the transforms' ranges; name it if it does
             raise FitError(f"parameters give an invalid atmosphere: {e}") from None
 
+    def _beta_550(self, phys: Mapping[str, Tensor], touched: set[str] | None = None) -> Tensor:
+        """Mie extinction at 550 nm [1/m]: from mie_aod_550 / H_M when the optical depth is fitted or set."""
+        touched = set(self.free) | self._overridden if touched is None else touched
+        if "mie_aod_550" in touched:
+            return phys["mie_aod_550"] / phys["mie_scale_height"]
+        return phys["mie_beta_550"]
+
     def derived(self, phys: Mapping[str, Tensor]) -> dict[str, float]:
-        """Derived quantities for reports: aerosol optical depth at 550 nm (beta_550 H_M), [1]."""
+        """Derived quantities for reports: aerosol optical depth and extinction at 550 nm (AOD = beta_550 H_M)."""
         with torch.no_grad():
-            return {"mie_aod_550": float(phys["mie_beta_550"] * phys["mie_scale_height"])}
+            beta = self._beta_550(phys)
+            return {"mie_aod_550": float(beta * phys["mie_scale_height"]), "mie_beta_550": float(beta)}
 
     def nuisance(self, phys: Mapping[str, Tensor], i: int) -> dict[str, Tensor]:
         """Observation ``i``'s nuisance values (shape ()) from :meth:`to_physical`'s dict."""
