@@ -39,6 +39,7 @@ def main() -> None:
     ap.add_argument("--orders", type=int, default=1)
     ap.add_argument("--starts", type=int, default=1)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--no-fit", action="store_true", help="only score the config's atmosphere")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     day = Path(args.day)
@@ -54,6 +55,10 @@ def main() -> None:
         dist = float(sun.get("distance_au", 1.0))
         fixed = FitProblem(Parameterisation(base, []), model, [obs], make_loss(args.loss), base_sun_distance_au=dist)
         m0 = fixed.metrics(fixed.param.initial_vector())
+        if args.no_fit:
+            print(json.dumps({"capture": folder.name, "orders": args.orders, "config_rmse": round(m0["rmse"], 3),
+                              "config_delta_e": round(m0["delta_e"], 3)}), flush=True)
+            continue
         free = args.free.split(",")
         init = {"sun_azimuth_offset": obs.metadata["azimuth_offset_guess_rad"]} if "sun_azimuth_offset" in free else {}
         param = Parameterisation(base, free, values=init)

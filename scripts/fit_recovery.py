@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from skyfit.atmosphere import load_atmosphere
-from skyfit.camera import FisheyeCamera, zenith_azimuth_to_enu
+from skyfit.camera import FisheyeCamera
 from skyfit.cli import parse_integrator
 from skyfit.fit import FitOptions, FitProblem, Observation, Parameterisation, SkyModel, fit, make_loss
 

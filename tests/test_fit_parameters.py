@@ -54,6 +54,9 @@ def test_forward_is_the_closed_form_and_stays_inside_the_range(name):
     elif spec.transform == "interval":
         expect = spec.lo + (spec.hi - spec.lo) / (1 + torch.exp(-x))
         assert bool(((v >= spec.lo) & (v <= spec.hi)).all())
+    elif spec.transform == "loginterval":
+        expect = torch.exp(math.log(spec.lo) + (math.log(spec.hi) - math.log(spec.lo)) / (1 + torch.exp(-x)))
+        assert bool(((v >= spec.lo * (1 - 1e-12)) & (v <= spec.hi * (1 + 1e-12))).all())
     else:
         expect = spec.ref * x
     assert_close(v, expect, rtol=1e-13, atol=0.0)
@@ -133,6 +136,8 @@ def test_errors_name_the_parameter(earth):
         Parameterisation(earth, ["mie_color"])
     with pytest.raises(FitError, match=r"mie_g must lie in the open interval \(-1, 1\)"):
         Parameterisation(earth, ["mie_g"], values={"mie_g": 1.0})
+    with pytest.raises(FitError, match=r"mie_scale_height must lie in the open interval \(10, 20000\) m"):
+        Parameterisation(earth, ["mie_scale_height"], values={"mie_scale_height": 30_000.0})
     with pytest.raises(FitError, match="mie_beta_550 must be > 0"):
         Parameterisation(earth, ["mie_beta_550"], values={"mie_beta_550": -1e-6})
     with pytest.raises(FitError, match="not both"):

@@ -120,7 +120,10 @@ def _run_start(problem: FitProblem, x0: Tensor, opt: FitOptions, bar, label: str
         best = (math.inf, x.clone())
         for _ in range(opt.adam_steps):
             adam.zero_grad()
-            loss = problem.objective(p)
+            try:
+                loss = problem.objective(p)
+            except ValueError:  # a step outside the renderer's domain: keep the best point so far
+                break
             if not torch.isfinite(loss):
                 break
             loss.backward()
@@ -143,7 +146,13 @@ def _run_start(problem: FitProblem, x0: Tensor, opt: FitOptions, bar, label: str
 
     def closure():
         lbfgs.zero_grad()
-        loss = problem.objective(p)
+        try:
+            loss = problem.objective(p)
+        except FitError:
+            raise
+        except ValueError as e:  # the integrator refuses the point (e.g. outside its regime)
+            bad.append(f"{e} at x = {p.detach().tolist()}")
+            return torch.tensor(1e30, dtype=p.dtype, device=p.device)
         if not torch.isfinite(loss):
             bad.append(f"non-finite loss at x = {p.detach().tolist()}")
             # a large finite value makes the line search step back instead of failing

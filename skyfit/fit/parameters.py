@@ -8,6 +8,7 @@ transform       physical value v of the free number x  for
 ==============  =====================================  =================================
 ``log``         v = ref * exp(x)                       positive scales, heights, beta
 ``interval``    v = lo + (hi - lo) * sigmoid(x)        bounded: g in (-1, 1), ssa, albedo
+``loginterval``  v = lo (hi / lo)^sigmoid(x)            positive and bounded: scale heights
 ``linear``      v = ref * x                            unbounded angles (azimuth offset)
 ==============  =====================================  =================================
 
@@ -36,7 +37,7 @@ class FitError(ValueError):
     """A fit that cannot be set up or run as asked (unknown parameter, value out of range...)."""
 
 
-TRANSFORMS = ("log", "interval", "linear")
+TRANSFORMS = ("log", "interval", "loginterval", "linear")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,7 +49,7 @@ class ParameterSpec:
         unit: SI unit of the physical value.
         transform: one of TRANSFORMS (module table).
         ref: reference value of ``log`` and ``linear`` (x = 0 <-> v = ref for log; v = ref x for linear).
-        lo, hi: open interval of ``interval`` (and the range a user's value must lie in).
+        lo, hi: open interval of ``interval`` and ``loginterval`` (and the range a user's value must lie in).
         typical: physically plausible span used to spread multi-start points. [unit]
         nuisance: an instrument parameter (may be per observation) rather than an atmospheric one.
         description: one line for docs and reports.
@@ -71,6 +72,8 @@ class ParameterSpec:
         if self.transform == "interval":
             top = self.hi if hi is None else hi
             return self.lo + (top - self.lo) * torch.sigmoid(x)
+        if self.transform == "loginterval":
+            return self.lo * torch.exp(math.log(self.hi / self.lo) * torch.sigmoid(x))
         return self.ref * x
 
     def inverse(self, v: float, hi: float | None = None) -> float:
@@ -82,10 +85,13 @@ class ParameterSpec:
             if not v > 0:
                 raise FitError(f"{self.name} must be > 0 {self.unit}, got {v}")
             return math.log(v / self.ref)
-        if self.transform == "interval":
+        if self.transform in ("interval", "loginterval"):
             if not self.lo < v < top:
                 raise FitError(f"{self.name} must lie in the open interval ({self.lo:g}, {top:g}) {self.unit}, got {v}")
-            u = (v - self.lo) / (top - self.lo)
+            if self.transform == "interval":
+                u = (v - self.lo) / (top - self.lo)
+            else:
+                u = math.log(v / self.lo) / math.log(top / self.lo)
             return math.log(u) - math.log1p(-u)
         return v / self.ref
 
@@ -97,8 +103,8 @@ PARAMETERS: dict[str, ParameterSpec] = {
     for s in (
         ParameterSpec("rayleigh_scale", "1", "log", 1.0, 0.0, math.inf, (0.85, 1.15),
                       description="factor on the config's Rayleigh scattering spectrum"),
-        ParameterSpec("rayleigh_scale_height", "m", "log", 8000.0, 0.0, math.inf, (6500.0, 9500.0),
-                      description="Rayleigh density scale height"),
+        ParameterSpec("rayleigh_scale_height", "m", "loginterval", 1.0, 500.0, 50_000.0, (6500.0, 9500.0),
+                      description="Rayleigh density scale height, within 0.5-50 km"),
         ParameterSpec("mie_beta_550", "1/m", "log", 1e-5, 0.0, math.inf, (3e-6, 8e-5),
                       description="sea-level aerosol extinction coefficient at 550 nm"),
         ParameterSpec("mie_aod_550", "1", "log", 0.1, 0.0, math.inf, (0.02, 0.4),
@@ -107,8 +113,8 @@ PARAMETERS: dict[str, ParameterSpec] = {
                       description="Angstrom exponent: extinction ~ (lambda / 550 nm)^-alpha"),
         ParameterSpec("mie_ssa", "1", "interval", 1.0, 0.0, 1.0, (0.75, 0.98),
                       description="aerosol single-scattering albedo (grey)"),
-        ParameterSpec("mie_scale_height", "m", "log", 1200.0, 0.0, math.inf, (700.0, 2500.0),
-                      description="aerosol density scale height"),
+        ParameterSpec("mie_scale_height", "m", "loginterval", 1.0, 10.0, 20_000.0, (700.0, 2500.0),
+                      description="aerosol density scale height, within 10 m - 20 km"),
         ParameterSpec("mie_g", "1", "interval", 1.0, -1.0, 1.0, (0.55, 0.85),
                       description="aerosol phase-function asymmetry"),
         ParameterSpec("ground_albedo", "1", "interval", 1.0, 0.0, 1.0, (0.05, 0.35),
@@ -425,7 +431,7 @@ class Parameterisation:
             perm = torch.randperm(m, generator=generator)
             u = (perm.to(torch.float64) + torch.rand(m, generator=generator, dtype=torch.float64)) / m
             for k in range(m):
-                if spec.transform == "log":
+                if spec.transform in ("log", "loginterval"):
                     v = math.exp(math.log(lo) + float(u[k]) * (math.log(hi) - math.log(lo)))
                 else:
                     v = lo + float(u[k]) * (hi - lo)

@@ -10,7 +10,6 @@ import copy
 import dataclasses
 import inspect
 import json
-import math
 import time
 from pathlib import Path
 from typing import Any, Sequence
@@ -18,7 +17,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from .data import DataError, Observation, expand_data_paths, observation_from_exr, observation_from_kider
+from .data import Observation, expand_data_paths, observation_from_exr, observation_from_kider
 from .losses import make_loss
 from .model import FitProblem, SkyModel
 from .optimise import FitOptions, fit
