@@ -327,10 +327,21 @@ def _progress(args) -> bool:
     return (sys.stderr.isatty() and not args.json) if args.progress is None else bool(args.progress)
 
 
+def _threads(args) -> None:
+    """--threads N: torch's intra-op threads for this process (small fits on a busy machine: 1 is fastest)."""
+    if args.threads is not None:
+        import torch
+
+        if args.threads < 1:
+            raise UserError(f"--threads must be >= 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
+
+
 def cmd_fit(args) -> int:
     from .atmosphere import ConfigError
     from .fit.run import run_fit
 
+    _threads(args)
     cfg, source = _read_fit_config(args.config)
     overrides = {
         "free": args.free, "per_observation": args.per_observation, "integrator": args.integrator, "orders": args.orders,
@@ -366,6 +377,7 @@ def cmd_evaluate(args) -> int:
     from .fit.report import dumps
     from .fit.run import run_evaluate
 
+    _threads(args)
     res = run_evaluate(args.result, args.data, refit_nuisance=args.refit_nuisance, kider_site=_kider_site(args),
                        progress=_progress(args))
     if args.json:
@@ -399,6 +411,7 @@ def _add_fit_parsers(sub) -> None:
     f.add_argument("--location", help="Kider data: LAT,LON[,ELEV] (default: the Kider site)")
     f.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
     f.add_argument("--no-plots", action="store_true", help="do not write PNG plots")
+    f.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's; 1 is fastest for small fits on a busy machine)")
     f.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar (default: on a terminal)")
     f.add_argument("--json", action="store_true")
     f.set_defaults(func=cmd_fit)
@@ -410,6 +423,7 @@ def _add_fit_parsers(sub) -> None:
     e.add_argument("--location", help="Kider data: LAT,LON[,ELEV] (default: the Kider site)")
     e.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
     e.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar (default: on a terminal)")
+    e.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's)")
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=cmd_evaluate)
 
