@@ -184,7 +184,9 @@ def test_ground_albedo_adds_light_only_through_the_ground(earth2):
 
 
 # Fraction of directions where order k + 1 < order k, clear Earth, sun 0..85 deg, measured
-# at SMALL: 1.0, 1.0, 1.0 (orders 2<1, 3<2, 4<3).
+# at SMALL: 0.975, 1.0, 1.0 (orders 2<1, 3<2, 4<3; order 2 exceeds order 1, by up to 2.2x,
+# only for a few low-sun directions where single scattering is faint); max ratios of
+# order 3 / order 2 and 4 / 3: 0.43, 0.36.
 def test_orders_decrease_for_the_clear_earth(earth_tables):
     tab = earth_tables
     vz = torch.tensor([0.0, 20, 40, 60, 75, 85, 89, 95, 110, 140])
