@@ -36,9 +36,9 @@ class FitSettings:
     """What ``skyfit fit`` does; each field may be set in the config's ``fit:`` section or by a flag.
 
     The renderer defaults differ from ``skyfit render``'s (taylor, trapezoid, 32): a fit turns
-    model error into parameter bias, and on a 1 % noise sky Taylor's optical depth biased the
-    aerosol scale height by +150 %, a 32-sample trapezoid view integral by -20 %, while Chapman
-    with a 16-node Gauss-Legendre view integral recovered it to 0.3 % at lower cost
+    model error into parameter bias: on a 1 % noise sky Taylor's optical depth biased the
+    aerosol scale height by +145 %, a 32-sample trapezoid view integral by -23 %, while Chapman
+    with a 16-node Gauss-Legendre view integral recovered it to 0.3-7 % at lower cost
     (docs/fitting.md, "Model error").
     """
 
