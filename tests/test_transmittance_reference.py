@@ -86,3 +86,11 @@ def test_quadrature_converges_with_samples(grid):
     assert errs[0] > errs[1] > errs[2]
     # composite trapezoid is second order: 4x the samples, ~16x smaller error
     assert errs[1] / errs[2] > 10
+
+
+@pytest.mark.parametrize("name", ["trapezoid", "gauss", "taylor", "spline", "bruneton_lut", "chapman", "height_fog"])
+def test_settings_round_trip(name):
+    """RESULT.json stores integrator.settings(); make_integrator must rebuild the same integrator from it."""
+    integ = make_integrator(name)
+    settings = {k: v for k, v in integ.settings().items() if k != "name"}
+    assert make_integrator(name, **settings).settings() == integ.settings()

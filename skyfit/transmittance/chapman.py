@@ -130,7 +130,11 @@ class ChapmanOpticalDepth(OpticalDepthIntegrator):
 
     name = "chapman"
 
-    def __init__(self, min_x: float = CHAPMAN_MIN_X_DEFAULT):
+    def __init__(self, min_x: float = CHAPMAN_MIN_X_DEFAULT, approximation: str = "fitzmaurice1964"):
+        # ``approximation`` names the one formula implemented; accepted so that
+        # ``make_integrator(**integrator.settings())`` round-trips (RESULT.json).
+        if approximation != "fitzmaurice1964":
+            raise ValueError(f"unknown Chapman approximation {approximation!r}; valid: fitzmaurice1964")
         if not float(min_x) > 0:
             raise ValueError(f"min_x must be > 0, got {min_x}")
         self.min_x = float(min_x)
