@@ -312,6 +312,22 @@ def _view_groups(texels) -> tuple[Tensor, ...]:
     return g(texels.r), g(texels.mu), g(texels.hits_ground), t(texels.mu_s), t(texels.nu)
 
 
+def _group_ray_samples(ctx: _Ctx, r, mu, g, mus, nu, i: int, j: int, x: Tensor):
+    """Samples along the rays of view groups i:j, shared by the single and multiple scattering integrals.
+
+    Returns (dist (G, 1), d (G, S), col_v (G, S, 3), r_d (G, S), mu_d (G, S), mus_d (G, T, S), nu (G, T, 1)):
+    the distance to the nearest boundary, the sample distances, the view columns T(x, y) is made of, the
+    samples' radius and view cosine, their sun cosines for the T (mu_s, nu) texels of each group, and nu.
+    """
+    rr, mm, gg = r[i:j], mu[i:j], g[i:j]  # (G, 1)
+    dist = _distance_to_boundary(rr, mm, gg, ctx.atm)
+    d = dist * x  # (G, S)
+    col_v, r_d, mu_d = _segment_columns(ctx, rr.expand_as(d), mm.expand_as(d), d, gg.expand_as(d))
+    ss, nn = mus[i:j, :, None], nu[i:j, :, None]  # (G, T, 1)
+    mus_d = torch.clamp((rr[:, :, None] * ss + d[:, None, :] * nn) / r_d[:, None, :], -1.0, 1.0)  # (G, T, S)
+    return dist, d, col_v, r_d, mu_d, mus_d, nn
+
+
 def _single_scattering_table(ctx, texels, quad: Quadrature, chunk_bytes: float, use_ckpt: bool) -> tuple[Tensor, Tensor]:
     """Single Rayleigh and Mie scattering without phase function (2017 ComputeSingleScattering).
 
@@ -331,12 +347,7 @@ def _single_scattering_table(ctx, texels, quad: Quadrature, chunk_bytes: float, 
 
     def fn(i: int, j: int) -> Tensor:
         ext = extinction_matrix3(atm)
-        rr, mm, gg = r[i:j], mu[i:j], g[i:j]  # (G, 1)
-        dist = _distance_to_boundary(rr, mm, gg, atm)
-        d = dist * x  # (G, S)
-        col_v, r_d, _ = _segment_columns(ctx, rr.expand_as(d), mm.expand_as(d), d, gg.expand_as(d))
-        ss, nn = mus[i:j, :, None], nu[i:j, :, None]  # (G, T, 1)
-        mus_d = torch.clamp((rr[:, :, None] * ss + d[:, None, :] * nn) / r_d[:, None, :], -1.0, 1.0)  # (G, T, S)
+        dist, _, col_v, r_d, _, mus_d, _ = _group_ray_samples(ctx, r, mu, g, mus, nu, i, j, x)
         r_dt = r_d[:, None, :].expand_as(mus_d)
         col_s = _columns(ctx, r_dt, mus_d)  # (G, T, S, 3)
         vis = sun_visible_fraction(r_dt, mus_d, atm.bottom_radius, atm.sun_angular_radius)
@@ -483,14 +494,9 @@ def _multiple_scattering_table(ctx, texels, density: Tensor, quad: Quadrature, c
 
     def fn(i: int, j: int) -> Tensor:
         ext = extinction_matrix3(atm)
-        rr, mm, gg = r[i:j], mu[i:j], g[i:j]  # (G, 1)
-        dist = _distance_to_boundary(rr, mm, gg, atm)
-        d = dist * x  # (G, S)
-        col_v, r_d, mu_d = _segment_columns(ctx, rr.expand_as(d), mm.expand_as(d), d, gg.expand_as(d))
+        dist, _, col_v, r_d, mu_d, mus_d, nn = _group_ray_samples(ctx, r, mu, g, mus, nu, i, j, x)
         t_view = torch.exp(-col_v @ ext) * (w * dist).unsqueeze(-1)  # (G, S, W), with the weights
-        ss, nn = mus[i:j, :, None], nu[i:j, :, None]  # (G, T, 1)
-        mus_d = torch.clamp((rr[:, :, None] * ss + d[:, None, :] * nn) / r_d[:, None, :], -1.0, 1.0)  # (G, T, S)
-        idx = _scat_index(ctx, r_d[:, None, :], mu_d[:, None, :], mus_d, nn, gg[:, :, None])
+        idx = _scat_index(ctx, r_d[:, None, :], mu_d[:, None, :], mus_d, nn, g[i:j, :, None])
         dj = interpolate([density], idx)[0]  # (G, T, S, W)
         return torch.einsum("gtsw,gsw->gtw", dj, t_view)
 
