@@ -1,0 +1,152 @@
+"""Laplace approximation: a Gaussian posterior from the Hessian of the negative log-likelihood at the fit.
+
+At the optimum x* of the unconstrained vector (skyfit.fit.parameters) the negative
+log-likelihood -log L(x) = n_elements * objective(x) (+ const; exact for the squared
+loss with Gaussian noise, a pseudo-likelihood for the robust losses) is approximated
+by its second-order Taylor expansion (e.g. MacKay 2003, "Information Theory, Inference,
+and Learning Algorithms", Ch. 27; Gelman et al. 2013, BDA3 Sec. 4.1)::
+
+    cov_x = H^-1,   H = d^2 (-log L) / dx dx   at x*
+
+(flat priors in x: the default log-uniform priors of the positive scale parameters are
+flat in x; :mod:`skyfit.fit.sample` adds the others). H comes from torch autograd
+(:func:`torch.autograd.functional.hessian`, float64). Physical units by the delta
+method: v = f(x) elementwise, so cov_v = J cov_x J with J = diag(f'(x*)).
+Intervals are Gaussian in x, mapped through f: [f(x* - z s), f(x* + z s)] (they respect
+each parameter's range, e.g. g in (-1, 1)).
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+from torch import Tensor
+
+from .model import FitProblem
+from .parameters import PARAMETERS, FitError
+
+Z68 = 0.9944578832097535
+"""Half-width of the central 68 % interval in units of sigma (Phi^-1(0.84)); 0.99446."""
+Z95 = 1.959963984540054
+"""Half-width of the central 95 % interval (Phi^-1(0.975))."""
+
+
+def display_names(problem: FitProblem) -> list[str]:
+    """``param.names`` with a single observation's ``[0]`` dropped (``exposure`` rather than ``exposure[0]``)."""
+    p = problem.param
+    return [n[:-3] if p.n_observations == 1 and n.endswith("[0]") else n for n in p.names]
+
+
+def hessian_nll(problem: FitProblem, x: Tensor) -> Tensor:
+    """Hessian of n_elements * objective at x, shape (P, P), float64. [1 / x^2]"""
+    x = x.detach().to(torch.float64) if problem.param.base.dtype == torch.float64 else x.detach()
+    n = problem.n_elements
+
+    def f(v: Tensor) -> Tensor:
+        return problem.objective(v) * n
+
+    H = torch.autograd.functional.hessian(f, x)
+    return 0.5 * (H + H.T)
+
+
+def transform_jacobian(problem: FitProblem, x: Tensor) -> Tensor:
+    """dv_k / dx_k of every slot of x (the transforms are elementwise), shape (P,)."""
+    p = problem.param
+    xr = x.detach().clone().requires_grad_(True)
+    vals = torch.empty_like(xr)
+    out = []
+    for n in p.free:
+        spec = PARAMETERS[n]
+        for k in p._slots[n]:
+            v = spec.forward(xr[k], p._hi(n))
+            (g,) = torch.autograd.grad(v, xr)
+            out.append(g[k])
+    del vals
+    return torch.stack(out).detach()
+
+
+def physical_slot_values(problem: FitProblem, x: Tensor) -> Tensor:
+    """Physical value of each slot of x (P,) in the order of ``param.names``. [SI]"""
+    p = problem.param
+    out = torch.empty_like(x)
+    for n in p.free:
+        spec = PARAMETERS[n]
+        for k in p._slots[n]:
+            out[k] = spec.forward(x[k], p._hi(n))
+    return out
+
+
+def derived_functions(problem: FitProblem):
+    """Derived quantities worth a sigma: name -> function of x (a tensor ()), for the free set."""
+    p = problem.param
+    free = set(p.free)
+    out = {}
+    if "mie_beta_550" in free or ("mie_aod_550" in free):
+        other = "mie_aod_550" if "mie_beta_550" in free else "mie_beta_550"
+        if other == "mie_aod_550":
+            out[other] = lambda x: p._beta_550(p.to_physical(x)) * p.to_physical(x)["mie_scale_height"]
+        else:
+            out[other] = lambda x: p._beta_550(p.to_physical(x))
+    return out
+
+
+def laplace_summary(problem: FitProblem, x: Tensor) -> dict:
+    """The Laplace approximation at the fitted x: sigma and correlation per free parameter.
+
+    Args:
+        problem: the fit problem (its objective is the mean loss per element).
+        x: the fitted unconstrained vector, shape (P,).
+
+    Returns:
+        dict with ``names`` (param.names), ``values`` and ``sigma`` (name -> physical value and
+        its delta-method sigma [SI]), ``sigma_unconstrained``, ``interval68`` / ``interval95``
+        (name -> [lo, hi], Gaussian in x mapped to physical units), ``correlation`` (P x P),
+        ``covariance`` (physical, P x P), ``derived`` (e.g. mie_aod_550 value and sigma),
+        ``positive_definite``, ``min_eigenvalue``, ``seconds``. When the Hessian is not positive
+        definite (a flat direction: a parameter the data do not constrain) sigma is from the
+        pseudo-inverse and ``positive_definite`` is False.
+    """
+    t0 = time.perf_counter()
+    p = problem.param
+    x = x.detach()
+    H = hessian_nll(problem, x).to(torch.float64)
+    if not bool(torch.isfinite(H).all()):
+        raise FitError("Laplace: the Hessian at the fit is not finite")
+    evals = torch.linalg.eigvalsh(H)
+    pd = bool(evals.min() > 0)
+    cov_x = torch.cholesky_inverse(torch.linalg.cholesky(H)) if pd else torch.linalg.pinv(H, hermitian=True)
+    cov_x = 0.5 * (cov_x + cov_x.T)
+    J = transform_jacobian(problem, x.to(torch.float64))
+    cov_v = J[:, None] * cov_x * J[None, :]
+    s_x = torch.sqrt(torch.clamp_min(torch.diagonal(cov_x), 0.0))
+    s_v = torch.sqrt(torch.clamp_min(torch.diagonal(cov_v), 0.0))
+    d = torch.where(s_x > 0, s_x, torch.ones_like(s_x))
+    corr = cov_x / d[:, None] / d[None, :]
+    vals = physical_slot_values(problem, x.to(torch.float64))
+    names = display_names(problem)
+    out = {
+        "names": names,
+        "values": {n: float(v) for n, v in zip(names, vals)},
+        "sigma": {n: float(s) for n, s in zip(names, s_v)},
+        "sigma_unconstrained": {n: float(s) for n, s in zip(names, s_x)},
+        "correlation": corr.tolist(),
+        "covariance": cov_v.tolist(),
+        "covariance_unconstrained": cov_x.tolist(),
+        "positive_definite": pd,
+        "min_eigenvalue": float(evals.min()),
+    }
+    for key, z in (("interval68", Z68), ("interval95", Z95)):
+        lo = physical_slot_values(problem, (x.to(torch.float64) - z * s_x))
+        hi = physical_slot_values(problem, (x.to(torch.float64) + z * s_x))
+        out[key] = {n: [float(a), float(b)] for n, a, b in zip(names, lo, hi)}
+    derived = {}
+    for name, fn in derived_functions(problem).items():
+        xr = x.to(torch.float64).clone().requires_grad_(True)
+        val = fn(xr)
+        (g,) = torch.autograd.grad(val, xr)
+        var = float(g @ cov_x @ g)
+        derived[name] = {"value": float(val.detach()), "sigma": math.sqrt(max(var, 0.0))}
+    out["derived"] = derived
+    out["seconds"] = time.perf_counter() - t0
+    return out
