@@ -352,7 +352,7 @@ def cmd_fit(args) -> int:
     }
     try:
         res = run_fit(args.data, cfg, args.out, overrides=overrides, config_source=source, kider_site=_kider_site(args),
-                      plots=not args.no_plots, progress=_progress(args))
+                      plots=not args.no_plots, progress=_progress(args), laplace=args.laplace)
     except ConfigError as e:
         raise ConfigError(f"config {source}: {e}") from None
     m, c = res["metrics"], res["convergence"]
@@ -360,13 +360,16 @@ def cmd_fit(args) -> int:
                "rmse": m["rmse"], "rmse_units": m["rmse_units"], "delta_e": m["delta_e"], "n_samples": m["n_samples"],
                "converged": c["converged"], "reason": c["reason"], "seconds": round(res["seconds"], 3),
                "plots": res.get("plots", [])}
+    if "laplace" in res:
+        summary["laplace_sigma"] = res["laplace"]["sigma"]
     if args.json:
         from .fit.report import dumps
 
         print(dumps(summary, indent=None))
     else:
+        sig = res.get("laplace", {}).get("sigma", {})
         for n, v in summary["free"].items():
-            print(f"{n:22s} {v}")
+            print(f"{n:22s} {v}" + (f" +- {sig[n]:.3g} (Laplace)" if n in sig else ""))
         print(f"loss {m['loss']:.6g}  rmse {m['rmse']:.4g} {m['rmse_units']}  delta_e {m['delta_e']:.3g}  "
               f"({m['n_samples']} samples; {c['reason']} after {c['iterations']} L-BFGS iterations, {res['seconds']:.1f} s)")
         print(f"wrote {args.out}")
@@ -384,6 +387,42 @@ def cmd_evaluate(args) -> int:
         print(dumps(res, indent=None))
     else:
         print(f"rmse {res['rmse']:.4g} {res['rmse_units']}  delta_e {res['delta_e']:.3g}  ({res['n_samples']} samples)")
+    return 0
+
+
+def cmd_sample(args) -> int:
+    from .atmosphere import ConfigError
+    from .fit.report import dumps
+    from .fit.sample import run_sample
+
+    _threads(args)
+    if args.walkers is not None and args.walkers < 2:
+        raise UserError(f"--walkers must be >= 2, got {args.walkers}")
+    if args.steps is not None and args.steps < 1:
+        raise UserError(f"--steps must be >= 1, got {args.steps}")
+    if not Path(args.init).is_file():
+        raise UserError(f"--init: result file not found: {args.init}")
+    cfg, source = _read_fit_config(args.config)
+    overrides = {"walkers": args.walkers, "steps": args.steps, "seed": args.seed, "integrator": args.integrator,
+                 "view_samples": args.view_samples, "checkpoint_seconds": args.checkpoint_seconds,
+                 "batched": False if args.no_batch else None}
+    try:
+        res = run_sample(args.data, cfg, args.init, args.out, overrides=overrides, kider_site=_kider_site(args),
+                         resume=args.resume, progress=_progress(args), plots=not args.no_plots)
+    except ConfigError as e:
+        raise ConfigError(f"config {source}: {e}") from None
+    d = res["diagnostics"]
+    short = {"out": str(args.out), "parameters": {n: {k: v[k] for k in ("median", "p16", "p84", "std")} for n, v in res["parameters"].items()},
+             "tau_max": d["tau_max"], "acceptance": d["acceptance_fraction"]["mean"], "steps": d["steps"],
+             "long_enough": d["long_enough"], "warning": d["warning"]}
+    if args.json:
+        print(dumps(short, indent=None))
+    else:
+        for n, v in res["parameters"].items():
+            print(f"{n:22s} {v['median']:.6g} +{v['p84'] - v['median']:.3g} -{v['median'] - v['p16']:.3g}")
+        print(f"{d['steps']} steps x {d['walkers']} walkers, tau max {d['tau_max']:.1f}, acceptance "
+              f"{d['acceptance_fraction']['mean']:.2f}, burn-in {d['burn_in']}, thin {d['thin']}")
+        print(f"wrote {args.out}")
     return 0
 
 
@@ -411,6 +450,7 @@ def _add_fit_parsers(sub) -> None:
     f.add_argument("--location", help="Kider data: LAT,LON[,ELEV] (default: the Kider site)")
     f.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
     f.add_argument("--no-plots", action="store_true", help="do not write PNG plots")
+    f.add_argument("--laplace", action="store_true", help="add a Hessian (Laplace) covariance: sigma and correlation per parameter")
     f.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's; 1 is fastest for small fits on a busy machine)")
     f.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar (default: on a terminal)")
     f.add_argument("--json", action="store_true")
@@ -426,6 +466,27 @@ def _add_fit_parsers(sub) -> None:
     e.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's)")
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=cmd_evaluate)
+
+    sm = sub.add_parser("sample", help="emcee posterior around a fit: chain, summary.json, corner/trace plots (docs/uncertainty.md)")
+    sm.add_argument("data", nargs="+", help="the DATA the fit used (.exr, Kider folders)")
+    sm.add_argument("--config", required=True, help="atmosphere config (or shipped name); optional sample: section (priors...)")
+    sm.add_argument("--init", required=True, help="RESULT.json of skyfit fit: free set, settings and the starting point")
+    sm.add_argument("--out", required=True, help="output folder: chain.h5, summary.json, plots")
+    sm.add_argument("--walkers", type=int, help="ensemble size, even and >= 2 x free parameters (default 32)")
+    sm.add_argument("--steps", type=int, help="chain length per walker (default 2000); with --resume the total to reach")
+    sm.add_argument("--seed", type=int, help="random seed (default 0)")
+    sm.add_argument("--resume", action="store_true", help="continue DIR/chain.h5 from its last checkpoint")
+    sm.add_argument("--integrator", help="optical-depth integrator while sampling (default: the fit's); its bias is measured")
+    sm.add_argument("--view-samples", type=int, help="view-ray samples while sampling (default: the fit's)")
+    sm.add_argument("--checkpoint-seconds", type=float, help="wall time between chain checkpoints (default 10)")
+    sm.add_argument("--no-batch", action="store_true", help="evaluate the walkers one at a time (for comparison)")
+    sm.add_argument("--no-plots", action="store_true", help="do not write PNG plots")
+    sm.add_argument("--location", help="Kider data: LAT,LON[,ELEV] (default: the Kider site)")
+    sm.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
+    sm.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's)")
+    sm.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar with running tau (default: on a terminal)")
+    sm.add_argument("--json", action="store_true")
+    sm.set_defaults(func=cmd_sample)
 
 
 def cmd_bench(args) -> int:

@@ -177,7 +177,8 @@ def _model(s: FitSettings) -> SkyModel:
 
 
 def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overrides: dict | None = None,
-            config_source: str = "", kider_site: dict | None = None, plots: bool = True, progress: bool = False) -> dict:
+            config_source: str = "", kider_site: dict | None = None, plots: bool = True, progress: bool = False,
+            laplace: bool = False) -> dict:
     """Fit DATA, write RESULT.json (and plots beside it), return the result dict.
 
     Args:
@@ -189,6 +190,8 @@ def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overri
         kider_site: latitude / longitude / elevation / utc_offset_hours for Kider folders.
         plots: write PNG plots next to ``out``.
         progress: tqdm progress bar on stderr.
+        laplace: add ``result["laplace"]``: sigma and correlation of every free parameter from the
+            Hessian at the fit (:func:`skyfit.fit.laplace.laplace_summary`, docs/uncertainty.md).
     """
     t0 = time.perf_counter()
     out = Path(out)
@@ -238,6 +241,10 @@ def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overri
         "config_source": config_source,
         "seconds": time.perf_counter() - t0,
     }
+    if laplace:
+        from .laplace import laplace_summary
+
+        result["laplace"] = laplace_summary(problem, res.x)
     if plots:
         with torch.no_grad():
             preds = problem.predict(res.x)
