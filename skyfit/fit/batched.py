@@ -199,7 +199,10 @@ class _ObsGeometry:
         self.sun_cols = _LayerColumns(_plan(integrator, r_j, mus_c, distance_to_top(r_j, mus_c, Rt), Rb), fixed_heights, K, 2)
         # Ozone (when the atmosphere has it): its exact tent-layer column is geometry only (the ozone
         # spectrum is not fitted), appended as the last column as skyfit.scattering.single.path_columns does.
-        self.ozone = getattr(atm, "ozone_absorption", None) is not None
+        from ..scattering import single as _single
+
+        # (only where the renderer itself includes ozone: skyfit.scattering.single.path_columns)
+        self.ozone = getattr(atm, "ozone_absorption", None) is not None and hasattr(_single, "path_columns")
         if self.ozone:
             from ..transmittance import ozone_column
 
