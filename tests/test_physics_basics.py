@@ -190,7 +190,7 @@ def _earth():
 
 def _vacuum():
     z = torch.zeros(3, dtype=F64)
-    return _earth().replace(rayleigh_scattering=z, mie_scattering=z, mie_extinction=z)
+    return _earth().replace(rayleigh_scattering=z, mie_scattering=z, mie_extinction=z, ozone_absorption=None)
 
 
 RENDERED = [n for n in INTEGRATORS if n != "height_fog"]
@@ -252,7 +252,8 @@ def _layer_column(H: float) -> float:
 def test_zenith_view_with_zenith_sun_closed_form(name):
     """Ground, view and sun at the zenith: T(x,y) T(y,sun) = exp(-tau_vertical) for every y, so
 
-    L = E exp(-tau) sum_i beta_i^s P_i(1) C_i,   C_i = H_i (1 - exp(-(top - R)/H_i)),  tau = sum_i beta_i^e C_i.
+    L = E exp(-tau) sum_i beta_i^s P_i(1) C_i,   C_i = H_i (1 - exp(-(top - R)/H_i)),  tau = sum_i beta_i^e C_i
+    + k_O3 (top_O3 - bottom_O3) / 2 (the ozone tent's vertical column; it absorbs only).
     """
     integ = _integrator(name, **_CLOSED_FORM_SETTINGS.get(name, {}))
     atm = _earth()
@@ -263,7 +264,8 @@ def test_zenith_view_with_zenith_sun_closed_form(name):
     p_r = 3.0 / (16.0 * math.pi) * 2.0
     p_m = 3.0 / (8.0 * math.pi) * (1 - g * g) * 2.0 / ((2 + g * g) * (1 - g) ** 3)
     b_r, b_ms, b_me = (t.numpy() for t in (atm.rayleigh_scattering, atm.mie_scattering, atm.mie_extinction))
-    tau = b_r * c_r + b_me * c_m
+    lo, _, hi = atm.ozone_layer_m
+    tau = b_r * c_r + b_me * c_m + atm.ozone_absorption.numpy() * (hi - lo) / 2.0
     expected = atm.solar_irradiance.numpy() * np.exp(-tau) * (b_r * p_r * c_r + b_ms * p_m * c_m)
     torch.testing.assert_close(out[0], torch.from_numpy(expected), rtol=_CLOSED_FORM_RTOL[name], atol=0.0)
 
@@ -278,7 +280,7 @@ def test_nadir_from_space_rayleigh_only_closed_form(name):
     """
     integ = _integrator(name, **_CLOSED_FORM_SETTINGS.get(name, {}))
     z = torch.zeros(3, dtype=F64)
-    atm = _earth().replace(mie_scattering=z, mie_extinction=z)
+    atm = _earth().replace(mie_scattering=z, mie_extinction=z, ozone_absorption=None)
     one = torch.ones(1, dtype=F64)
     out = single_scattering(atm, torch.full((1,), R_TOP + 1e5, dtype=F64), -one, one, -one, integ, view_samples=64, rule="gauss")
     tau = atm.rayleigh_scattering.numpy() * _layer_column(float(atm.rayleigh_scale_height))

@@ -240,7 +240,9 @@ SETTINGS = {"ground": (128, 128), "5km": (128, 128), "space": (512, 128), "night
 
 @functools.lru_cache(maxsize=1)
 def _atmosphere():
-    return load_atmosphere("earth", list(WAVELENGTHS), dtype=torch.float64)
+    # Rayleigh and Mie only: this reference has no ozone; tests/test_ozone.py extends it
+    # with the ozone tent column and checks the renderer with ozone.
+    return load_atmosphere("earth", list(WAVELENGTHS), dtype=torch.float64).replace(ozone_absorption=None)
 
 
 @functools.lru_cache(maxsize=None)

@@ -121,6 +121,8 @@ PARAMETERS: dict[str, ParameterSpec] = {
                       description="grey Lambertian ground albedo (replaces the config's spectrum)"),
         ParameterSpec("ground_albedo_scale", "1", "interval", 1.0, 0.0, math.inf, (0.6, 1.4),
                       description="factor on the config's albedo spectrum, in (0, 1 / max albedo)"),
+        ParameterSpec("ozone_column", "DU", "log", 300.0, 0.0, math.inf, (220.0, 420.0),
+                      description="total ozone column in Dobson units (scales the config's ozone absorption)"),
         ParameterSpec("exposure", "1", "log", 1.0, 0.0, math.inf, (0.7, 1.4), nuisance=True,
                       description="calibration scale: data = exposure x model (data units per W/(m^2 sr nm))"),
         ParameterSpec("noise_scale", "1", "log", 1.0, 0.0, math.inf, (1.0, 1.0), nuisance=True,
@@ -151,6 +153,33 @@ def check_names(names: Iterable[str], what: str = "free parameter") -> list[str]
             raise FitError(f"{what} {n!r} given twice")
         out.append(n)
     return out
+
+
+def ozone_column_du(atm: Atmosphere) -> float | None:
+    """Total vertical ozone column of ``atm`` in Dobson units, None without ozone. [DU]
+
+    The config builds ``ozone_absorption = peak_density x sigma(lambda)`` with peak_density =
+    column x DOBSON_UNIT_PER_M2 / ((top - bottom) / 2) (the tent's vertical column of unit
+    peak) and sigma the shipped ozone cross-section table (skyfit/atmosphere/config.py);
+    this inverts it by least squares over the wavelengths the table covers (exact for shipped
+    configs); NaN when it covers none of them.
+    """
+    if atm.ozone_absorption is None:
+        return None
+    from ..atmosphere.config import spectral_tables
+    from ..atmosphere.constants import DOBSON_UNIT_PER_M2
+
+    tab = spectral_tables()["ozone_cross_section_233K"]
+    wl = np.asarray(tab["wavelength_nm"], float)
+    lam = atm.wavelengths.detach().cpu().double().numpy()
+    inside = (lam >= wl[0] - 5.0) & (lam <= wl[-1] + 5.0)  # the table's bins (config.table's range)
+    sigma = np.interp(lam[inside], wl, np.asarray(tab["values"], float))
+    k = atm.ozone_absorption.detach().cpu().double().numpy()[inside]
+    if not inside.any() or not np.dot(sigma, sigma) > 0:
+        return math.nan
+    peak = float(np.dot(k, sigma) / np.dot(sigma, sigma))
+    lo, _, hi = atm.ozone_layer_m
+    return peak * 0.5 * (hi - lo) / DOBSON_UNIT_PER_M2
 
 
 def mie_power_law(wavelengths: Tensor, extinction: Tensor) -> tuple[float, float]:
@@ -216,6 +245,13 @@ class Parameterisation:
             raise FitError("free ground_albedo (grey) or ground_albedo_scale (of the config's spectrum), not both")
         if "mie_beta_550" in self.free and "mie_aod_550" in self.free:
             raise FitError("free mie_beta_550 (extinction) or mie_aod_550 (optical depth = beta x H_M), not both")
+        self._ozone_du = ozone_column_du(base)  # the config's column; ozone_column scales its absorption
+        if "ozone_column" in self.free and self._ozone_du is None:
+            raise FitError(f"ozone_column is free but config {base.name!r} has no ozone; add an ozone: section "
+                           "(column_du, layer_m) to the config")
+        if "ozone_column" in self.free and not self._ozone_du > 0:
+            raise FitError(f"ozone_column is free but the ozone of config {base.name!r} has no column to scale "
+                           "(zero absorption, or no wavelength inside the ozone cross-section table)")
 
         # Base spectral shapes: the fitted numbers act on them.
         self._lam = base.wavelengths
@@ -243,6 +279,7 @@ class Parameterisation:
             "mie_g": float(base.mie_g),
             "ground_albedo": float(base.ground_albedo.mean()),
             "ground_albedo_scale": 1.0,
+            "ozone_column": self._ozone_du if self._ozone_du is not None and self._ozone_du > 0 else 0.0,
             **_NUISANCE_DEFAULTS,
         }
         self.values: dict[str, float | list[float]] = dict(self.defaults)
@@ -380,6 +417,9 @@ class Parameterisation:
             kw["ground_albedo"] = T(phys["ground_albedo"]) * torch.ones_like(b.ground_albedo)
         elif "ground_albedo_scale" in touched:
             kw["ground_albedo"] = b.ground_albedo * T(phys["ground_albedo_scale"])
+        if "ozone_column" in touched and self._ozone_du is not None and self._ozone_du > 0:
+            # absorption is linear in the column: the config's spectrum times column / config column
+            kw["ozone_absorption"] = b.ozone_absorption * (T(phys["ozone_column"]) / self._ozone_du)
         if not kw:
             return b
         try:

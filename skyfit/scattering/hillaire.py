@@ -25,8 +25,10 @@ Choices, with their reasons:
 - LUT axes: altitude h in [0, top - bottom] and mu_s in [-1, 1], texel centres on the end
   points (the paper's ``fromSubUvsToUnit``); bilinear lookup, clamped.
 - Render: single scattering is :func:`.single.single_scattering` (its integrator, rule and
-  ground), the multiple term uses the same integrator for T(x, y). As in single
-  scattering, ozone is seen only by the LUT. Psi is stored per unit solar irradiance.
+  ground), the multiple term uses the same integrator for T(x, y). Ozone is seen
+  everywhere: by the LUT (its tent in the marched optical depth and the sun's table) and
+  by the render, whose T(x, y) and T(y, sun) add the exact ozone column
+  (:func:`.single.path_columns`). Psi is stored per unit solar irradiance.
 """
 from __future__ import annotations
 
@@ -42,7 +44,7 @@ from ..quadrature import nodes_weights, validate_rule
 from ..transmittance import ColumnFn, OpticalDepthIntegrator
 from .bruneton_tables import TableSizes, extinction_matrix3, profile_densities
 from .multiple import _columns, _Ctx, transmittance_columns_table
-from .single import single_scattering, sun_ray_cosine, sun_visible_fraction, view_ray_samples
+from .single import path_columns, path_extinction, single_scattering, sun_ray_cosine, sun_visible_fraction, view_ray_samples
 
 __all__ = ["HillaireLUT", "fibonacci_sphere", "hillaire_lut", "hillaire_multiple", "hillaire_sky_radiance", "lookup_psi"]
 
@@ -205,7 +207,8 @@ def hillaire_multiple(
     Rb = atm.bottom_radius
     x, w = nodes_weights(rule, view_samples, dtype, device)
     _, seg, r0, mu0, _, s, r_j, mus_j = view_ray_samples(atm, r, mu, mu_s, nu, x)
-    trans = torch.exp(column_fn(r0.unsqueeze(-1), mu0.unsqueeze(-1), s) @ -atm.extinction_matrix)  # (n, N, W)
+    # T(x, y) with the ozone column when the atmosphere has ozone (as in single scattering).
+    trans = torch.exp(path_columns(column_fn, atm, r0.unsqueeze(-1), mu0.unsqueeze(-1), s) @ -path_extinction(atm))  # (n, N, W)
     dens = torch.exp((r_j - Rb).unsqueeze(-1) * -(1.0 / atm.scale_heights))  # (n, N, 2)
     sigma_s = dens @ torch.stack([atm.rayleigh_scattering, atm.mie_scattering])  # (n, N, W)
     psi = lookup_psi(lut, r_j, mus_j, Rb)
@@ -233,7 +236,8 @@ def hillaire_sky_radiance(
         atm: the atmosphere (dtype and device followed).
         r: observer distance from the planet centre, shape (...). [m]
         mu, mu_s, nu: view zenith, sun zenith and view-sun cosines, shape (...). [1]
-        integrator: optical-depth method for T(x, y) and T(y, sun) along the view ray.
+        integrator: optical-depth method for T(x, y) and T(y, sun) along the view ray (Rayleigh
+            and Mie; the ozone column, when ``atm.ozone_absorption`` is set, is exact).
         view_samples: samples of the view-ray integral.
         lut: from :func:`hillaire_lut` (built with defaults if None).
         rule: outer quadrature rule.

@@ -2,8 +2,11 @@
 
     L(x, v, s) = E_sun  int_0^{l}  T(x, y) T(y, sun) sum_i beta_i(y) P_i(nu) dy     (+ ground)
 
-with T = exp(-sum_i beta_i^e column_i) from an optical-depth integrator, the
-outer integral over the view ray by a fixed rule with N samples. The sun is
+with T = exp(-sum_i beta_i^e column_i) from an optical-depth integrator (Rayleigh and Mie
+exponential layers) and, when the atmosphere has ozone, the exact column of the ozone tent
+layer times ``ozone_absorption`` (:func:`skyfit.transmittance.ozone_column`, closed form,
+the same for every integrator): T(x, y), T(y, sun), the ground's two paths and the solar
+disc all include it. The outer integral over the view ray is a fixed rule with N samples. The sun is
 attenuated by the fraction of its disc above the horizon seen from each
 point (Bruneton 2017, GetTransmittanceToSun), which makes the shadow edge
 smooth and sun-below-horizon skies well defined.
@@ -19,7 +22,7 @@ from torch import Tensor
 from ..atmosphere import Atmosphere
 from ..geometry import atmosphere_segment, distance_to_top, point_along_ray, safe_sqrt, sun_cosine_along_ray
 from ..quadrature import nodes_weights, validate_rule
-from ..transmittance import ColumnFn, OpticalDepthIntegrator
+from ..transmittance import ColumnFn, OpticalDepthIntegrator, ozone_column
 from ..transmittance.quadrature import QuadratureOpticalDepth
 from .phase import mie_phase, rayleigh_phase
 
@@ -59,12 +62,37 @@ def sun_ray_cosine(r: Tensor, mu_s: Tensor, bottom_radius: float) -> Tensor:
     return torch.maximum(mu_s, -safe_sqrt(1.0 - sin_h * sin_h))
 
 
+def path_columns(column_fn: ColumnFn, atm: Atmosphere, r: Tensor, mu: Tensor, length: Tensor) -> Tensor:
+    """Columns of every absorber along segments: the integrator's (Rayleigh, Mie) and, when
+    ``atm.ozone_absorption`` is set, the exact ozone tent column last, shape (..., K [+ 1]). [m]
+
+    Args:
+        column_fn: a prepared integrator, ``(r, mu, length) -> (..., K)``.
+        r, mu, length: segment start radius [m], zenith cosine [1] and length [m], broadcastable.
+
+    Optical depth = ``path_columns(...) @ path_extinction(atm)``.
+    """
+    col = column_fn(r, mu, length)
+    if atm.ozone_absorption is None:
+        return col
+    oz = ozone_column(r, mu, length, atm.bottom_radius, atm.ozone_layer_m)
+    return torch.cat([col, oz.unsqueeze(-1).expand(*col.shape[:-1], 1)], dim=-1)
+
+
+def path_extinction(atm: Atmosphere) -> Tensor:
+    """Rows matching :func:`path_columns`: (Rayleigh scattering, Mie extinction[, ozone
+    absorption at peak density]), shape (K [+ 1], W). [1/m]"""
+    if atm.ozone_absorption is None:
+        return atm.extinction_matrix
+    return torch.cat([atm.extinction_matrix, atm.ozone_absorption.unsqueeze(0)], dim=0)
+
+
 def transmittance_to_sun(column_fn: ColumnFn, atm: Atmosphere, r: Tensor, mu_s: Tensor) -> Tensor:
-    """Transmittance from radius r to the sun, times its visible fraction, shape (..., W). [1]"""
+    """Transmittance from radius r to the sun (ozone included), times its visible fraction, shape (..., W). [1]"""
     mu_c = sun_ray_cosine(r, mu_s, atm.bottom_radius)
-    col = column_fn(r, mu_c, distance_to_top(r, mu_c, atm.top_radius))  # (..., K)
+    col = path_columns(column_fn, atm, r, mu_c, distance_to_top(r, mu_c, atm.top_radius))  # (..., K [+ 1])
     vis = sun_visible_fraction(r, mu_s, atm.bottom_radius, atm.sun_angular_radius)
-    return torch.exp(-col @ atm.extinction_matrix) * vis.unsqueeze(-1)
+    return torch.exp(-col @ path_extinction(atm)) * vis.unsqueeze(-1)
 
 
 class ViewRaySamples(NamedTuple):
@@ -110,8 +138,9 @@ def _render_chunk(atm, column_fn, r, mu, mu_s, nu, x, w, ground, sun_disk):
     # T(x, y_j) T(y_j, sun) = exp(-(column(x, y_j) + column(y_j, sun)) @ extinction): one
     # matmul and one exp over wavelengths; the sun's visible fraction goes into the weights.
     mus_c = sun_ray_cosine(r_j, mus_j, Rb)
-    col = column_fn(r0e, mu0e, s) + column_fn(r_j, mus_c, distance_to_top(r_j, mus_c, Rt))  # (n, N, K)
-    trans = torch.matmul(col, -atm.extinction_matrix).exp_()  # (n, N, W)
+    col = path_columns(column_fn, atm, r0e, mu0e, s) + path_columns(column_fn, atm, r_j, mus_c, distance_to_top(r_j, mus_c, Rt))
+    ext = path_extinction(atm)  # (K [+ 1], W); the ozone column is the last of col's (n, N, K [+ 1])
+    trans = torch.matmul(col, -ext).exp_()  # (n, N, W)
     vis = sun_visible_fraction(r_j, mus_j, Rb, atm.sun_angular_radius)  # (n, N)
     dens = torch.exp((r_j - Rb).unsqueeze(-1) * -(1.0 / atm.scale_heights))  # (n, N, 2)
     wd = dens * (vis * (w * seg.unsqueeze(-1))).unsqueeze(-1)  # quadrature weight x density x sun fraction
@@ -122,15 +151,15 @@ def _render_chunk(atm, column_fn, r, mu, mu_s, nu, x, w, ground, sun_disk):
     radiance = radiance * atm.solar_irradiance
     if ground:
         # Lambertian ground lit by the attenuated direct sun (its single-bounce term).
-        col_g = column_fn(r0, mu0, seg)
-        t_g = torch.exp(-col_g @ atm.extinction_matrix)
+        col_g = path_columns(column_fn, atm, r0, mu0, seg)
+        t_g = torch.exp(-col_g @ ext)
         r_g = torch.full_like(r, Rb)
         mus_g = sun_cosine_along_ray(r0, mus0, nu, seg, torch.clamp_min(point_along_ray(r0, mu0, seg)[0], Rb))
         e_g = transmittance_to_sun(column_fn, atm, r_g, mus_g) * torch.clamp_min(mus_g, 0.0).unsqueeze(-1)
         radiance = radiance + hits.unsqueeze(-1) * t_g * atm.ground_albedo / math.pi * e_g * atm.solar_irradiance
     if sun_disk:
-        col_t = column_fn(r0, mu0, seg)
-        t_top = torch.exp(-col_t @ atm.extinction_matrix)
+        col_t = path_columns(column_fn, atm, r0, mu0, seg)
+        t_top = torch.exp(-col_t @ ext)
         in_disk = (nu > math.cos(atm.sun_angular_radius)) & ~hits
         disk = atm.solar_irradiance / (math.pi * atm.sun_angular_radius**2)
         radiance = radiance + in_disk.unsqueeze(-1) * t_top * disk
@@ -159,7 +188,8 @@ def single_scattering(
         mu: cosine of the view zenith angle, shape (...). [1]
         mu_s: cosine of the sun zenith angle at the observer, shape (...). [1]
         nu: cosine of the angle between view and sun, shape (...). [1]
-        integrator: optical-depth method for T(x, y) and T(y, sun).
+        integrator: optical-depth method for the Rayleigh and Mie columns of T(x, y) and
+            T(y, sun); the ozone column (when ``atm.ozone_absorption`` is set) is exact.
         view_samples: N, samples of the outer integral.
         rule: outer quadrature rule (trapezoid, midpoint, simpson, gauss).
         ground: add the Lambertian ground lit by the direct sun for rays that hit it.
@@ -184,6 +214,7 @@ def single_scattering(
     # Working set per sample point: ~6 (W,)-vectors and ~24 scalars, plus a quadrature
     # integrator's (M, K) density grids for its M inner samples.
     inner = 8 * integrator.samples * atm.scale_heights.shape[0] if isinstance(integrator, QuadratureOpticalDepth) else 0
+    inner += 120 if atm.ozone_absorption is not None else 0  # the ozone column's 4 pieces x ~30 temporaries
     per_ray = x.shape[0] * (6 * n_w + 24 + inner) * torch.finfo(dtype).bits // 8
     if chunk_bytes is None:
         chunk_bytes = CHUNK_BYTES_CPU if torch.device(device).type == "cpu" else CHUNK_BYTES_ACCELERATOR

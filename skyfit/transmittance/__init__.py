@@ -13,12 +13,16 @@ bruneton_lut    Bruneton & Neyret 2008 Sec. 4 2D LUT, bilinear   lut
 height_fog      Ishiyama 2018 flat analytic height fog           fog
 chapman         closed-form Chapman grazing-incidence approx.    chapman
 =============== ================================================ =====================
+
+Not an integrator but used with every one: :func:`ozone_column` (module ``ozone``), the
+exact column of the ozone tent layer along a segment.
 """
 from __future__ import annotations
 
 import importlib
 
 from .base import ColumnFn, OpticalDepthIntegrator
+from .ozone import ozone_column
 
 _REGISTRY: dict[str, tuple[str, str]] = {
     "trapezoid": ("quadrature", "TrapezoidOpticalDepth"),
@@ -52,4 +56,4 @@ def make_integrator(name: str, **settings) -> OpticalDepthIntegrator:
         raise ValueError(f"bad settings for integrator {name!r}: {e}") from None
 
 
-__all__ = ["INTEGRATORS", "ColumnFn", "OpticalDepthIntegrator", "integrator_class", "make_integrator"]
+__all__ = ["INTEGRATORS", "ColumnFn", "OpticalDepthIntegrator", "integrator_class", "make_integrator", "ozone_column"]
