@@ -130,6 +130,11 @@ def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projecti
         extra["multiple"] = getattr(args, "multiple", "bruneton")
         if extra["multiple"] == "bruneton":
             extra["table_sizes"] = _table_sizes(getattr(args, "table_sizes", None))
+        elif getattr(args, "hillaire_lut", None):  # N_H,N_MU_S,DIRECTIONS,SAMPLES (set by --accuracy)
+            from .scattering.hillaire import hillaire_lut
+
+            nh, nm, nd, ns = (int(v) for v in args.hillaire_lut.split(","))
+            extra["tables"] = hillaire_lut(atm, size=(nh, nm), directions=nd, samples=ns)
     return render_fisheye(
         atm, cam, sun_zenith, sun_azimuth, integrator, altitude=args.altitude, view_samples=args.view_samples,
         rule=args.rule, orders=args.orders, sun_disk=args.sun_disk, **extra,
@@ -238,6 +243,7 @@ def cmd_render(args) -> int:
     sun_zenith, sun_azimuth, sun_info = _sun_from_args(args)
     _check_render_numbers(args)
     lam = parse_wavelengths(args.wavelengths)
+    auto = _apply_accuracy(args, sun_zenith) if args.accuracy else None
     integrator = parse_integrator(args.integrator)
     device = _check_device(args.device)
     atm = load_atmosphere(args.config, lam, dtype=_dtype(args.dtype), device=device, sun_distance_au=sun_info.get("distance_au"))
@@ -252,49 +258,44 @@ def cmd_render(args) -> int:
         raise UserError(f"render of {args.config} produced non-finite values in channel(s) {bad}; nothing written")
     write_exr(out, chans, meta)
     info = {"out": str(out), "seconds": round(elapsed, 4), "size": args.size, "channels": sorted(chans)}
-    print(json.dumps(info) if args.json else f"wrote {out} ({args.size}x{args.size}, {len(chans)} channels) in {elapsed:.2f} s")
+    if auto is not None:
+        info["accuracy"] = auto.summary()
+    text = f"wrote {out} ({args.size}x{args.size}, {len(chans)} channels) in {elapsed:.2f} s"
+    if auto is not None:
+        from .render.auto import describe
+
+        text += f"; --accuracy {auto.tolerance}: {describe(auto.setting)} (measured {auto.predicted_error:.3g})"
+    print(json.dumps(info) if args.json else text)
     return 0
 
 
-DEMO_SCENES = (("morning", 75.0, 90.0), ("noon", 25.0, 180.0), ("sunset", 88.0, 270.0))
+def _apply_accuracy(args, sun_zenith: float):
+    """``--accuracy``: replace the renderer flags by the cheapest measured setting meeting it (skyfit.render.auto)."""
+    from .render.auto import choose, parse_accuracy
+
+    try:
+        choice = choose(parse_accuracy(args.accuracy), sun_zenith, args.altitude, orders=args.orders, dtype=args.dtype)
+    except ValueError as e:
+        raise UserError(f"--accuracy {args.accuracy}: {e}") from None
+    st = choice.setting
+    if st["multiple"] == "bruneton":
+        args.orders, args.multiple, args.table_sizes = int(st["orders"]), "bruneton", st["table_sizes"]
+    else:
+        args.integrator, args.view_samples, args.rule = st["integrator"], int(st["view_samples"]), st["rule"]
+        if st["multiple"] == "hillaire":
+            args.orders, args.multiple, args.hillaire_lut = max(args.orders, 2), "hillaire", st["hillaire_lut"]
+    return choice
 
 
 def cmd_demo(args) -> int:
-    import skimage.io
-    import torch
+    """The main job on an embedded default: render, noise, fit, uncertainty, LUTs, truth vs recovered (skyfit.demo)."""
+    from .demo import run_demo
 
-    from .atmosphere import load_atmosphere
-    from .io import write_exr
-    from .render import tonemap_srgb8
-    from .transmittance import make_integrator
-
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    size = 96 if args.quick else 256
-    lam = parse_wavelengths(DEFAULT_WAVELENGTHS)
-    atm = load_atmosphere("earth", lam)
-    integrator = make_integrator("taylor")
-    ns = argparse.Namespace(altitude=0.0, view_samples=32, rule="trapezoid", orders=1, sun_disk=True)
-    report = []
-    for name, zen, az in DEMO_SCENES:
-        t0 = time.perf_counter()
-        with torch.no_grad():
-            img = _render_image(ns, atm, integrator, zen, az, size, "equidistant")
-        dt = time.perf_counter() - t0
-        chans, meta = _exr_payload(img, atm, integrator, ns, zen, az, spectral=True)
-        write_exr(out / f"{name}.exr", chans, meta)
-        rgb = img.rgb.numpy()
-        exposure = 1.0 / max(float(np.percentile(rgb.mean(-1)[img.valid.numpy()], 90)), 1e-9)
-        tmp = out / f".{name}.png.tmp.png"
-        skimage.io.imsave(tmp, tonemap_srgb8(rgb, exposure), check_contrast=False)
-        tmp.replace(out / f"{name}.png")
-        zen_y = float(img.xyz[size // 2, size // 2, 1])
-        report.append({"scene": name, "sun_zenith_deg": zen, "sun_azimuth_deg": az, "zenith_luminance_cd_m2": zen_y, "seconds": round(dt, 3)})
-        if not args.json:
-            print(f"{name:8s} sun zenith {zen:5.1f} deg azimuth {az:5.1f} deg: zenith luminance {zen_y:8.1f} cd/m^2 ({dt:.2f} s) -> {out / (name + '.png')}")
-    (out / "demo.json").write_text(json.dumps(report, indent=2))
+    _threads(args)
+    summary = run_demo(args.out, quick=args.quick, progress=_progress(args),
+                       log=(lambda *a, **k: None) if args.json else print)
     if args.json:
-        print(json.dumps(report))
+        print(json.dumps(summary))
     return 0
 
 
@@ -345,14 +346,15 @@ def cmd_fit(args) -> int:
     cfg, source = _read_fit_config(args.config)
     overrides = {
         "free": args.free, "per_observation": args.per_observation, "integrator": args.integrator, "orders": args.orders,
-        "view_samples": args.view_samples, "rule": args.rule, "loss": args.loss, "starts": args.starts,
+        "multiple": args.multiple, "view_samples": args.view_samples, "rule": args.rule, "loss": args.loss, "starts": args.starts,
         "max_iter": args.max_iter, "adam_steps": args.adam_steps, "seed": args.seed, "wavelengths": args.wavelengths,
         "min_elevation_deg": args.min_elevation, "sun_disc_deg": args.sun_mask, "max_samples": args.max_samples,
-        "sigma_relative": args.sigma_relative,
+        "sigma_relative": args.sigma_relative, "accuracy": args.accuracy,
+        "select_sigma": args.select_sigma, "select_heldout": args.heldout,
     }
     try:
         res = run_fit(args.data, cfg, args.out, overrides=overrides, config_source=source, kider_site=_kider_site(args),
-                      plots=not args.no_plots, progress=_progress(args), laplace=args.laplace)
+                      plots=not args.no_plots, progress=_progress(args), laplace=args.laplace, select=args.select)
     except ConfigError as e:
         raise ConfigError(f"config {source}: {e}") from None
     m, c = res["metrics"], res["convergence"]
@@ -362,11 +364,18 @@ def cmd_fit(args) -> int:
                "plots": res.get("plots", [])}
     if "laplace" in res:
         summary["laplace_sigma"] = res["laplace"]["sigma"]
+    if "selection" in res:
+        summary["selection"] = {k: res["selection"][k] for k in ("chosen", "components", "heldout_choice", "heldout_agrees", "why")}
     if args.json:
         from .fit.report import dumps
 
         print(dumps(summary, indent=None))
     else:
+        if "selection" in res:
+            from .fit.select import format_table
+
+            print(format_table(res["selection"]))
+            print(f"chosen: {res['selection']['why']}")
         sig = res.get("laplace", {}).get("sigma", {})
         for n, v in summary["free"].items():
             print(f"{n:22s} {v}" + (f" +- {sig[n]:.3g} (Laplace)" if n in sig else ""))
@@ -434,9 +443,13 @@ def _add_fit_parsers(sub) -> None:
     f.add_argument("--free", help="comma list of fitted parameters (docs/fitting.md), e.g. mie_beta_550,mie_g,exposure")
     f.add_argument("--per-observation", help="comma list of nuisance parameters with one value per observation")
     f.add_argument("--integrator", help="NAME[:key=value,...] (default chapman)")
-    f.add_argument("--orders", type=int, help="scattering orders (1 = single scattering, the default)")
+    f.add_argument("--orders", type=int, help="scattering orders (1 = single scattering, the default; >= 2 adds multiple scattering)")
+    f.add_argument("--multiple", choices=("hillaire", "bruneton"),
+                   help="with --orders >= 2: Hillaire 2020's LUT (default, rebuilt per evaluation) or Bruneton's tables (reduced sizes)")
     f.add_argument("--view-samples", type=int, help="samples of the view-ray integral (default 16)")
     f.add_argument("--rule", help="outer quadrature rule (default gauss)")
+    f.add_argument("--accuracy", help="auto (model error <= 1/3 of the data's median relative sigma), de=X or rel=X: "
+                   "the cheapest measured renderer setting meeting it replaces --integrator/--view-samples/--rule")
     f.add_argument("--loss", help="squared, log, relative, huber, cauchy [:residual=...,delta=...] (default squared)")
     f.add_argument("--starts", type=int, help="multi-start points (default 3)")
     f.add_argument("--max-iter", type=int, help="L-BFGS iterations per start (default 100)")
@@ -451,6 +464,11 @@ def _add_fit_parsers(sub) -> None:
     f.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
     f.add_argument("--no-plots", action="store_true", help="do not write PNG plots")
     f.add_argument("--laplace", action="store_true", help="add a Hessian (Laplace) covariance: sigma and correlation per parameter")
+    f.add_argument("--select", action="store_true",
+                   help="choose the model by a ladder of nested models, BIC and held-out pixels (docs/selection.md)")
+    f.add_argument("--select-sigma", choices=("scaled", "known"),
+                   help="--select: data sigma known up to a fitted common factor (default) or exactly")
+    f.add_argument("--heldout", type=float, help="--select: fraction of samples held out of the fits (default 0.2)")
     f.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's; 1 is fastest for small fits on a busy machine)")
     f.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar (default: on a terminal)")
     f.add_argument("--json", action="store_true")
@@ -494,7 +512,32 @@ def cmd_bench(args) -> int:
 
     if args.threads is not None and args.threads < 1:
         raise UserError(f"--threads must be >= 1, got {args.threads}")
-    run_bench(out=Path(args.out), quick=args.quick, device=_check_device(args.device), as_json=args.json, threads=args.threads)
+    device = _check_device(args.device)
+    if args.frontier_out and args.study == "integrators":
+        raise UserError("--frontier-out needs --study trade or all (the trade study writes it)")
+    if args.study == "integrators":
+        run_bench(out=Path(args.out), quick=args.quick, device=device, as_json=args.json, threads=args.threads)
+        return 0
+    from .bench_trade import run_trade_study
+
+    trade = lambda as_json: run_trade_study(out=Path(args.out), quick=args.quick, device=device, as_json=as_json,  # noqa: E731
+                                            threads=args.threads, frontier_out=args.frontier_out and Path(args.frontier_out),
+                                            command="skyfit " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["bench"] else None)
+    if args.study == "trade":
+        trade(args.json)
+        return 0
+    import contextlib
+    import io
+
+    if not args.json:
+        run_bench(out=Path(args.out), quick=args.quick, device=device, threads=args.threads)
+        trade(False)
+        return 0
+    with contextlib.redirect_stdout(io.StringIO()) as a:
+        run_bench(out=Path(args.out), quick=args.quick, device=device, as_json=True, threads=args.threads)
+    with contextlib.redirect_stdout(io.StringIO()) as b:
+        trade(True)
+    print(json.dumps({"integrators": json.loads(a.getvalue()), "trade": json.loads(b.getvalue())}))
     return 0
 
 
@@ -638,13 +681,19 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--spectral", action="store_true", help="also write one channel L<nm> per wavelength")
     r.add_argument("--sun-disk", action="store_true", help="add the attenuated solar disc")
     r.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    r.add_argument("--accuracy", help="auto (= de=1), de=X (mean ΔE) or rel=X (relative radiance error): the cheapest "
+                   "measured setting meeting it replaces --integrator/--view-samples/--rule (and with --orders >= 2 "
+                   "--multiple/--table-sizes); docs/benchmarks.md, 'Automatic settings'")
     r.add_argument("--device", default="cpu")
     r.add_argument("--json", action="store_true")
     r.set_defaults(func=cmd_render)
 
-    d = sub.add_parser("demo", help="render example skies (morning, noon, sunset) to PNG and EXR")
-    d.add_argument("--out", default="demo_out")
-    d.add_argument("--quick", action="store_true")
+    d = sub.add_parser("demo", help="the main job on a known sky: render, add noise, fit, uncertainty, export LUTs, "
+                                    "truth vs recovered +- sigma (skyfit/demo.py)")
+    d.add_argument("--out", default="demo_out", help="report folder (default demo_out)")
+    d.add_argument("--quick", action="store_true", help="48x48, 6 wavelengths, Laplace only: within a minute on 2 CPU cores")
+    d.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's)")
+    d.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bars (default: on a terminal)")
     d.add_argument("--json", action="store_true")
     d.set_defaults(func=cmd_demo)
     _add_fit_parsers(sub)
@@ -653,7 +702,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", default="bench_out")
     b.add_argument("--quick", action="store_true", help="a reduced table for CI")
     b.add_argument("--device", default="cpu")
-    b.add_argument("--threads", type=int, help="torch CPU threads (default: the bench's own choice, 2)")
+    b.add_argument("--threads", type=int, help="torch CPU threads (default: the bench's own choice, 2; trade study 1)")
+    b.add_argument("--study", choices=("integrators", "trade", "all"), default="all",
+                   help="integrators: Gałaj 2021 Table 3 (bench.md); trade: every renderer setting on fixed scenes "
+                        "(trade.md, frontier.json for --accuracy); all: both (default)")
+    b.add_argument("--frontier-out", help="also write the trade study's frontier.json here (skyfit/data/auto_settings.json "
+                                          "is the one --accuracy reads)")
     b.add_argument("--json", action="store_true")
     b.set_defaults(func=cmd_bench)
 

@@ -226,27 +226,37 @@ def test_render_json_output(tmp_path, capsys):
 
 # -- demo --------------------------------------------------------------------------------
 def test_demo_quick(tmp_path, capsys):
-    import skimage.io
+    """The whole main job: the noisy image follows its stated noise model, the fit recovers the truth."""
+    from skyfit.demo import NOISE, TRUTH
 
     out = tmp_path / "demo"
-    rc, stdout, err = _run(["demo", "--quick", "--out", out, "--json"], capsys)
+    rc, stdout, err = _run(["demo", "--quick", "--out", out, "--json", "--threads", "1"], capsys)
     assert rc == 0, err
     report = json.loads(stdout)
-    scenes = {"morning", "noon", "sunset"}
-    assert {r["scene"] for r in report} == scenes
     files = set(_all_files(out))
-    assert {f"{s}.{e}" for s in scenes for e in ("png", "exr")} <= files
+    assert {"truth.exr", "observed.exr", "truth.png", "RESULT.json", "report.md", "demo.json"} <= files
+    assert (out / "luts" / "lut.json").is_file()
     assert not any(f.startswith(".") or "tmp" in f for f in files)
-    for r in report:
-        png = skimage.io.imread(out / f"{r['scene']}.png")
-        assert png.dtype == np.uint8 and png.ndim == 3 and png.shape[0] == png.shape[1] and png.shape[2] in (3, 4)
-        chans, meta = read_exr(out / f"{r['scene']}.exr")
-        assert meta["sun"] == {"zenith_deg": r["sun_zenith_deg"], "azimuth_deg": r["sun_azimuth_deg"]}
-        n = chans["Y"].shape[0]
-        assert chans["Y"][n // 2, n // 2] == pytest.approx(r["zenith_luminance_cd_m2"], rel=1e-6)
-    noon, _ = read_exr(out / "noon.exr")
-    c = noon["Y"].shape[0] // 2
-    assert noon["B"][c, c] > noon["R"][c, c]  # a clear noon zenith is blue
+    truth, _ = read_exr(out / "truth.exr")
+    observed, meta = read_exr(out / "observed.exr")
+    lam = [k for k in truth if k.startswith("L")]
+    t = np.stack([truth[k] for k in lam], -1).astype(float)
+    o = np.stack([observed[k] for k in lam], -1).astype(float)
+    used = t[..., 0] > 0
+    sigma = np.hypot(meta["noise"]["sigma_relative"] * t, meta["noise"]["sigma_absolute"])
+    z = ((o - t) / sigma)[used]
+    assert meta["noise"]["sigma_relative"] == NOISE[0]
+    assert abs(z.mean()) < 0.05 and abs(z.std() - 1) < 0.05  # ~11 000 draws: SE 0.01
+    rows = {r["parameter"]: r for r in report["rows"]}
+    assert set(rows) == set(TRUTH)
+    for name, r in rows.items():
+        if name == "mie_g":
+            assert abs(r["recovered"] - r["truth"]) < 0.01, r
+        else:
+            assert abs(r["relative_error"]) < 0.03, r
+        if r["sigma_laplace"] is not None:
+            assert abs(r["error_in_sigma"]) < 5, r
+    assert 0.4 < report["metrics"]["loss"] < 0.7  # chi^2 / 2 per element ~ 0.5 plus the model error
 
 
 def test_render_sun_from_time_and_location(tmp_path, capsys):

@@ -48,6 +48,11 @@ class FitSettings:
     loss: str = "squared"
     integrator: str = "chapman"
     orders: int = 1
+    multiple: str = "hillaire"
+    lut_size: list[int] = dataclasses.field(default_factory=lambda: [16, 16])
+    lut_directions: int = 32
+    lut_samples: int = 12
+    table_sizes: list[int] | None = None
     view_samples: int = 16
     rule: str = "gauss"
     starts: int = 3
@@ -62,9 +67,18 @@ class FitSettings:
     saturation: float | None = None
     max_samples: int | None = None
     sigma_relative: float = 0.01
+    spectral_noise: list[float] | None = None
     bin_nm: float = 10.0
     per_sample_sun: bool = True
     dtype: str = "float64"
+    select_sigma: str = "scaled"
+    """``--select``: ``scaled`` (sigma known up to a common factor, profiled) or ``known`` (skyfit.fit.select)."""
+    select_heldout: float = 0.2
+    """``--select``: fraction of the samples held out of the ladder's fits and scored afterwards."""
+    accuracy: str | None = None
+    """``auto`` (= ``noise``: relative model error <= 1/3 of the data's median relative sigma), ``de=X`` or
+    ``rel=X``: replaces integrator, view_samples, rule (and the multiple-scattering fields for orders >= 2)
+    by the cheapest measured setting meeting it (:mod:`skyfit.render.auto`, docs/benchmarks.md)."""
 
 
 FIT_SECTION_KEYS = frozenset(f.name for f in dataclasses.fields(FitSettings))
@@ -97,6 +111,8 @@ def fit_settings(section: dict | None, overrides: dict | None = None) -> FitSett
         raise FitError(f"view_samples must be >= 1, got {s.view_samples}")
     if s.max_samples is not None and s.max_samples < 1:
         raise FitError(f"max_samples must be >= 1, got {s.max_samples}")
+    if s.spectral_noise is not None and (not isinstance(s.spectral_noise, (list, tuple)) or len(s.spectral_noise) != 2):
+        raise FitError(f"fit.spectral_noise must be [relative, absolute], got {s.spectral_noise!r}")
     if s.dtype not in ("float32", "float64"):
         raise FitError(f"dtype must be float32 or float64, got {s.dtype!r}")
     return s
@@ -126,9 +142,26 @@ def _load(data: Sequence[str | Path], s: FitSettings, kider_site: dict | None, m
                 p, sigma_relative=s.sigma_relative, min_elevation_deg=s.min_elevation_deg, sun_disc_deg=s.sun_disc_deg,
                 saturation=s.saturation, max_samples=max_samples, dtype=dtype))
         else:
-            obs.append(observation_from_kider(p, bin_nm=s.bin_nm, per_sample_sun=s.per_sample_sun, dtype=dtype,
-                                              **(kider_site or {})))
+            o = observation_from_kider(p, bin_nm=s.bin_nm, per_sample_sun=s.per_sample_sun, dtype=dtype,
+                                       **(kider_site or {}))
+            obs.append(o if s.spectral_noise is None else with_noise_model(o, *s.spectral_noise))
     return obs
+
+
+def with_noise_model(obs: Observation, relative: float, absolute: float) -> Observation:
+    """``obs`` with sigma = hypot(relative x value, absolute) instead of its own.
+
+    Kider et al.'s band averages carry the standard error of the spectrometer's samples
+    (0.06 % median at noon), far below the instrument's calibration and pointing errors, so
+    weighting by it makes a fit chase a few bright samples. ``fit.spectral_noise: [rel, abs]``
+    states the instrument's error instead; ``[0, a]`` weights every element alike, which makes
+    the loss the published score (unweighted RMSE). [1], [W/(m^2 sr nm)]
+    """
+    if not (relative >= 0 and absolute >= 0 and relative + absolute > 0):
+        raise FitError(f"spectral_noise needs relative >= 0 and absolute >= 0, not both 0; got {relative}, {absolute}")
+    sigma = torch.sqrt((relative * obs.values) ** 2 + absolute**2)
+    meta = {**obs.metadata, "sigma_model": {"relative": relative, "absolute": absolute}}
+    return dataclasses.replace(obs, sigma=sigma, metadata=meta)
 
 
 def model_wavelengths(observations: Sequence[Observation], wavelengths: str | None) -> np.ndarray:
@@ -173,12 +206,44 @@ def _initial_values(s: FitSettings, observations: Sequence[Observation], free: S
 
 
 def _model(s: FitSettings) -> SkyModel:
-    return SkyModel(_integrator(s.integrator), orders=s.orders, view_samples=s.view_samples, rule=s.rule)
+    return SkyModel(_integrator(s.integrator), orders=s.orders, view_samples=s.view_samples, rule=s.rule,
+                    multiple=s.multiple, lut_size=tuple(s.lut_size), lut_directions=s.lut_directions,
+                    lut_samples=s.lut_samples, table_sizes=None if s.table_sizes is None else tuple(s.table_sizes))
+
+
+def _resolve_accuracy(s: FitSettings, observations) -> tuple[FitSettings, SkyModel]:
+    """``s.accuracy`` -> settings with the automatic renderer fields, and their model (skyfit.render.auto)."""
+    from ..render.auto import fit_overrides
+
+    try:
+        over, _ = fit_overrides(s.accuracy, observations, orders=s.orders, dtype=s.dtype)
+    except ValueError as e:
+        raise FitError(f"accuracy {s.accuracy!r}: {e}") from None
+    s = dataclasses.replace(s, **over)
+    return s, _model(s)
+
+
+def _model_from_result(res: dict) -> SkyModel:
+    """The SkyModel a RESULT.json was fitted with (its ``integrator`` and ``model`` entries)."""
+    m = res["model"]
+    kw = {}
+    if int(m.get("orders", 1)) > 1:
+        kw = {"multiple": m.get("multiple", "hillaire")}
+        for k in ("lut_directions", "lut_samples"):
+            if k in m:
+                kw[k] = int(m[k])
+        if "lut_size" in m:
+            kw["lut_size"] = tuple(m["lut_size"])
+        if m.get("table_sizes") is not None:
+            kw["table_sizes"] = tuple(m["table_sizes"])
+    return SkyModel(_integrator(res["integrator"]), orders=int(m.get("orders", 1)),
+                    view_samples=int(m.get("view_samples", 32)), rule=m.get("rule", "trapezoid"),
+                    ground=bool(m.get("ground", True)), **kw)
 
 
 def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overrides: dict | None = None,
             config_source: str = "", kider_site: dict | None = None, plots: bool = True, progress: bool = False,
-            laplace: bool = False) -> dict:
+            laplace: bool = False, select: bool = False) -> dict:
     """Fit DATA, write RESULT.json (and plots beside it), return the result dict.
 
     Args:
@@ -192,6 +257,8 @@ def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overri
         progress: tqdm progress bar on stderr.
         laplace: add ``result["laplace"]``: sigma and correlation of every free parameter from the
             Hessian at the fit (:func:`skyfit.fit.laplace.laplace_summary`, docs/uncertainty.md).
+        select: choose the model by the ladder of :mod:`skyfit.fit.select` (docs/selection.md);
+            RESULT.json then holds the chosen model and ``selection``.
     """
     t0 = time.perf_counter()
     out = Path(out)
@@ -199,12 +266,17 @@ def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overri
         raise FitError(f"--out must name a .json file, got {out}")
     if not isinstance(config, dict):
         raise FitError(f"config {config_source}: must be a mapping")
+    if select:  # the model ladder (skyfit.fit.select) chooses the atmosphere's components
+        from .select import run_select
+
+        return run_select(data, config, out, overrides=overrides, config_source=config_source, kider_site=kider_site,
+                          plots=plots, progress=progress, laplace=laplace)
     s = fit_settings(config.get("fit"), overrides)
     loss = make_loss(s.loss)
     model = _model(s)
-    if model.orders != 1:
-        raise FitError(f"orders={model.orders}: only single scattering (orders 1) is wired into the renderer so far")
     observations = _load(data, s, kider_site, s.max_samples)
+    if s.accuracy:  # the cheapest measured renderer setting meeting it, for these observations' scenes
+        s, model = _resolve_accuracy(s, observations)
     kinds = {o.kind for o in observations}
     free = list(s.free) if s.free is not None else list(DEFAULT_FREE) + (
         ["sun_azimuth_offset"] if any("ring" in o.metadata for o in observations) else [])
@@ -307,12 +379,10 @@ def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_n
     try:
         s = fit_settings(res.get("settings"), None)
         s = dataclasses.replace(s, max_samples=None)  # evaluate every usable sample
-        model = SkyModel(_integrator(res["integrator"]), orders=int(res["model"].get("orders", 1)),
-                         view_samples=int(res["model"].get("view_samples", 32)), rule=res["model"].get("rule", "trapezoid"),
-                         ground=bool(res["model"].get("ground", True)))
+        model = _model_from_result(res)
         loss = make_loss(res.get("loss", {}).get("name", "squared") if isinstance(res.get("loss"), dict) else "squared")
-    except (TypeError, KeyError) as e:
-        raise FitError(f"{result_path}: malformed result ({e})") from None
+    except (TypeError, KeyError, ValueError) as e:
+        raise FitError(f"{result_path}: malformed result ({e})".splitlines()[0]) from None
     observations = _load(data, s, kider_site, None)
     dtype = torch.float64 if s.dtype == "float64" else torch.float32
     lam = model_wavelengths(observations, s.wavelengths)
