@@ -19,21 +19,23 @@ while the column is ~km) and is 0 * inf at c = 0 (vertical rays); we use the
 equivalent, for a piece [u1, u2] with rho_i = rho(u_i) and Delta = u2 - u1,
 
     int_{u1}^{u2} rho du = Delta (rho1 + rho2) / 2 + c (asinh z - z) / 2,
-    z = Delta (1 + (u1^2 + u2^2 + c) / (rho1 rho2 + u1 u2)) / (rho1 + rho2)        (u1 u2 >= 0)
-    z = Delta (c + rho1 rho2 - u1 u2) / (c (rho1 + rho2))                          (u1 u2 < 0)
+    z = Delta (1 + (u1^2 + u2^2 + c) / (rho1 rho2 + u1 u2)) / (rho1 + rho2)
 
-(from asinh a - asinh b = asinh(a sqrt(1 + b^2) - b sqrt(1 + a^2)) and
+(from asinh a - asinh b = asinh(a sqrt(1 + b^2) - b sqrt(1 + a^2)) and the identity
 rho1 rho2 - u1 u2 = c (u1^2 + u2^2 + c) / (rho1 rho2 + u1 u2)): the trapezoid rule in rho
-plus the sagitta term, with asinh z - z from its Taylor series for |z| < 0.1. No division
-by c except where u1 u2 < 0, i.e. the piece passes the ray's closest point to the centre,
-which lies inside the layer (so c >= (R + bottom)^2 > 0). The density offsets rho - rho_0
-are formed from altitudes (h(t) = (r - R) + (2 r mu t + t^2) / (rho + r)), not radii.
+plus the sagitta term, with asinh z - z from its Taylor series for |z| < 0.1. There is no
+division by c, so vertical rays (c = 0) need no special case; rho1 rho2 + u1 u2 > 0 for
+every ray that does not pass through the planet's centre, and the form cancels only where
+u1 u2 < 0 and |u1 u2| ~ rho1 rho2, which the pieces below never have (none straddles the
+ray's closest point to the centre, u = 0). The density offsets rho - rho_0 are formed from
+altitudes (h(t) = (r - R) + (2 r mu t + t^2) / (rho + r)), not radii.
 
 Piece order: along any ray rho(t) decreases to its minimum at t* = -r mu, then increases,
-so the crossings come in the fixed order top-, peak-, bottom-, t*, bottom+, peak+, top+
-(a shell the ray misses is "crossed" at t*). Clamped to [0, L], these eight points cut
+so the crossings t = -r mu -+ sqrt(rho_k^2 - c) come in the fixed order top-, peak-,
+bottom-, t*, bottom+, peak+, top+ (a shell the ray misses is "crossed" at t*: the square
+root of a negative discriminant is taken as 0). Clamped to [0, L], these seven points cut
 the segment into pieces of known density: above top, falling, rising, below bottom
-(twice), rising, falling, above top. Only four pieces carry ozone.
+(twice), rising, falling, above top. Only four pieces carry ozone; no sorting, no branches.
 
 Gradients: the crossing points are detached. This is exact, not an approximation: the
 tent is continuous, so the derivative of the integral with respect to a split point
@@ -43,16 +45,17 @@ of the graph, so gradients are finite for every ray (vertical, horizontal, tange
 shell, starting on a shell). Gradients flow to r, mu, length and to the layer altitudes
 when they are tensors.
 
-Accuracy (tests/test_ozone.py, docs/ozone.md): against scipy quad in float64 to ~1e-12
-relative; in float32 the altitude of a point, r - R, is itself resolved to ~0.5 m at
-Earth's radius, which bounds the column's relative accuracy at ~1e-4 on short segments.
+Accuracy (tests/test_ozone.py, docs/ozone.md): against scipy quad in float64 to ~1e-11
+relative; in float32 to ~1e-4 of max(column, 1 m) at float32 inputs (r itself is resolved
+to ~0.5 m at Earth's radius, so a grazing ray's column can move by 0.2 % from rounding its
+inputs alone). Cost: docs/ozone.md (about as much as the two exponential layers of a
+cheap integrator).
 """
 from __future__ import annotations
 
 import torch
 from torch import Tensor
 
-from ..geometry import safe_sqrt
 
 ASINH_SERIES_Z: float = 0.1
 """Below this |z|, asinh z - z is summed from its Taylor series (to z^13: relative error < 1e-13);
@@ -74,30 +77,15 @@ def asinh_minus_identity(z: Tensor) -> Tensor:
     return torch.where(small, series, torch.asinh(z) - z)
 
 
-def _crossings(r: Tensor, rmu: Tensor, alt0: Tensor, h: Tensor, bottom_radius: float) -> tuple[Tensor, Tensor]:
-    """Distances (t-, t+) where the ray meets the shell at altitude h; both t* = -r mu if it misses. [m]
-
-    Stable root forms (the product of the roots is r^2 - rho_k^2): no cancellation for any sign of mu.
-    """
-    rho_k = bottom_radius + h
-    dr = h - alt0  # rho_k - r, from altitudes
-    prod = -dr * (rho_k + r)  # r^2 - rho_k^2
-    disc = dr * (rho_k + r) + rmu * rmu  # rho_k^2 - r^2 (1 - mu^2)
-    sq = safe_sqrt(disc)
-    up = rmu > 0
-    big = torch.where(up, -(rmu + sq), -rmu + sq)  # the root without cancellation
-    big_safe = torch.where(big != 0, big, torch.ones_like(big))
-    small = torch.where(big != 0, prod / big_safe, -rmu)
-    t_minus = torch.where(up, big, small)
-    t_plus = torch.where(up, small, big)
-    miss = disc <= 0
-    return torch.where(miss, -rmu, t_minus), torch.where(miss, -rmu, t_plus)
+_PIECE_ENDS = (0, 1, 4, 5, 1, 2, 5, 6)
+"""Starts then ends, indices into the seven split points (top-, peak-, bottom-, t*, bottom+, peak+,
+top+), of the four ozone-carrying pieces: falling, rising, rising, falling."""
 
 
 def ozone_column(r: Tensor, mu: Tensor, length: Tensor, bottom_radius: float, layer_m) -> Tensor:
     """Column of the ozone tent profile relative to its peak density along a segment (exact). [m]
 
-    ``int_0^L f(h(t)) dt`` with f the tent of module docstring, h(t) = |x + t v| - R.
+    ``int_0^L f(h(t)) dt`` with f the tent of the module docstring, h(t) = |x + t v| - R.
     Optical depth = this column times ``ozone_absorption`` (the absorption coefficient at
     peak density [1/m]).
 
@@ -112,56 +100,45 @@ def ozone_column(r: Tensor, mu: Tensor, length: Tensor, bottom_radius: float, la
     Returns:
         Column, shape broadcast of (r, mu, length); follows their dtype and device. [m]
     """
-    r, mu, length = torch.broadcast_tensors(r, mu, length)
-    lo, pk, hi = (torch.as_tensor(v, dtype=r.dtype, device=r.device) for v in layer_m)
+    # The split points depend on (r, mu) only: computed on their shape, so that segments of one ray
+    # with many lengths (the view-ray samples, r and mu of shape (n, 1), length (n, N)) share them.
+    r, mu = torch.broadcast_tensors(r, mu)
+    dtype, device = r.dtype, r.device
+    lo, pk, hi = (torch.as_tensor(v, dtype=dtype, device=device) for v in layer_m)
     R = bottom_radius
-    alt0 = r - R
-    rmu = r * mu
-    c = r * r * (1.0 - mu) * (1.0 + mu)  # r^2 (1 - mu^2), accurate near the horizon
+    alt0 = (r - R).unsqueeze(-1)  # altitude of the start, (..., 1)
+    rmu = (r * mu).unsqueeze(-1)
+    re = r.unsqueeze(-1)
+    c = (r * r * (1.0 - mu) * (1.0 + mu)).unsqueeze(-1)  # r^2 (1 - mu^2), accurate near the horizon
 
-    # Split points (detached: see module docstring), clamped to the segment.
+    # Split points t = -r mu -+ sqrt(rho_k^2 - c) of the shells (top, peak, bottom), detached (module
+    # docstring). A missed shell (negative discriminant) gives sqrt(0): both at t*. The plain root form
+    # may lose ~eps r in a root; the tent is continuous, so a split point off by d changes the
+    # column by O(d^2 / layer thickness), nothing.
     with torch.no_grad():
-        rd, rmud, a0d = r.detach(), rmu.detach(), alt0.detach()
-        minus, plus = [], []
-        for h in (hi, pk, lo):
-            tm, tp = _crossings(rd, rmud, a0d, h.detach(), R)
-            minus.append(tm)
-            plus.append(tp)
-        pts = minus + [-rmud] + plus[::-1]  # top-, peak-, bottom-, t*, bottom+, peak+, top+
-        p = torch.stack(pts, dim=-1).clamp_min(0.0)
-        p = torch.cummax(p, dim=-1).values  # monotone despite rounding
-    L = length.unsqueeze(-1)
-    p = torch.minimum(p, L)  # the ones clamped to L carry L's gradient
-    # Ozone-carrying pieces: (top-, peak-) falling, (peak-, bottom-) rising, (bottom+, peak+) rising,
-    # (peak+, top+) falling.
-    t1 = torch.stack([p[..., 0], p[..., 1], p[..., 4], p[..., 5]], dim=-1)
-    t2 = torch.stack([p[..., 1], p[..., 2], p[..., 5], p[..., 6]], dim=-1)
-    re, rmue, a0e, ce = (v.unsqueeze(-1) for v in (r, rmu, alt0, c))
-
-    def at(t):
-        q = 2.0 * rmue * t + t * t  # rho^2 - r^2
-        rho = safe_sqrt(re * re + q)
-        return rho, a0e + q / (rho + re)  # rho, altitude
-
-    rho1, h1 = at(t1)
-    rho2, h2 = at(t2)
+        h_k = torch.stack([hi.detach(), pk.detach(), lo.detach()])  # (3,)
+        a0d, rmud = alt0.detach(), rmu.detach()
+        disc = (h_k - a0d) * (2.0 * R + h_k + a0d) + rmud * rmud  # rho_k^2 - c, (..., 3)
+        sq = torch.sqrt(torch.clamp_min(disc, 0.0))
+        p = torch.cat([-rmud - sq, -rmud, (sq - rmud).flip(-1)], dim=-1)  # (..., 7), in ray order
+        p = torch.cummax(p.clamp_min(0.0), dim=-1).values  # monotone despite rounding
+        p = p.index_select(-1, torch.tensor(_PIECE_ENDS, device=device))  # (..., 8): starts, ends
+    p = torch.minimum(p, length.unsqueeze(-1))  # the points clamped to L carry L's gradient
+    # Altitude and radius at the split points (h from the start's altitude: no R-sized cancellation).
+    q = p * (2.0 * rmu + p)  # rho^2 - r^2
+    rho = torch.sqrt(re * re + q)
+    h = alt0 + q / (rho + re)
+    t1, t2, rho1, rho2, h1, h2 = p[..., :4], p[..., 4:], rho[..., :4], rho[..., 4:], h[..., :4], h[..., 4:]
     delta = t2 - t1
-    u1, u2 = t1 + rmue, t2 + rmue
-    uu = u1 * u2
-    same = uu >= 0
-    s = rho1 + rho2
-    den = rho1 * rho2 + uu
-    den = torch.where(same & (den > 0), den, torch.ones_like(den))
-    k_same = 1.0 + (u1 * u1 + u2 * u2 + ce) / den
-    c_safe = torch.where(same | (ce <= 0), torch.ones_like(ce), ce)
-    k_cross = (ce + rho1 * rho2 - uu) / c_safe
-    z = delta * torch.where(same, k_same, k_cross) / s
-    sag = 0.5 * ce * asinh_minus_identity(z)  # int rho du - trapezoid in rho
-    # Falling pieces: f = (top - h) / (top - peak); rising: (h - bottom) / (peak - bottom).
-    fall = ((hi - h1) + (hi - h2)) * 0.5 * delta - sag
-    rise = ((h1 - lo) + (h2 - lo)) * 0.5 * delta + sag
-    col = (fall[..., 0] + fall[..., 3]) / (hi - pk) + (rise[..., 1] + rise[..., 2]) / (pk - lo)
-    return col
+    u1, u2 = t1 + rmu, t2 + rmu
+    # z of the module docstring; rho1 rho2 + u1 u2 > 0 for every ray that does not pass through the
+    # planet's centre (and a piece never straddles t*, where u changes sign, by more than rounding).
+    z = delta * (1.0 + (u1 * u1 + u2 * u2 + c) / (rho1 * rho2 + u1 * u2)) / (rho1 + rho2)
+    sag = 0.5 * c * asinh_minus_identity(z)  # int rho du - trapezoid in rho
+    # Piece k: f = slope_k (h - h0_k): falling (top - h) / (top - peak), rising (h - bottom) / (peak - bottom).
+    h0 = torch.stack([hi, lo, lo, hi])
+    slope = torch.stack([-1.0 / (hi - pk), 1.0 / (pk - lo), 1.0 / (pk - lo), -1.0 / (hi - pk)])
+    return ((delta * (0.5 * (h1 + h2) - h0) + sag) * slope).sum(-1)
 
 
 def ozone_vertical_column(layer_m) -> float:
