@@ -58,7 +58,7 @@ def tiny_observation(noise=0.01, seed=0, exposure=1.3, size=10, sun=(40.0, 120.0
     view = view[valid]
     n = view.shape[0]
     t = lambda d: torch.tensor(math.radians(d), dtype=torch.float64)  # noqa: E731
-    ones = torch.ones(n, 3, dtype=torch.float64)
+    ones = torch.ones(n, len(LAM), dtype=torch.float64)
     dummy = Observation("t", "truth", "spectral", view, t(sun[0]), t(sun[1]), ones, ones, torch.ones(n, dtype=torch.bool),
                         tuple(f"L{x:g}" for x in LAM), torch.tensor(LAM))
     truth = {**TRUTH, "exposure": exposure}
@@ -93,6 +93,9 @@ def test_batched_log_likelihood_equals_the_per_walker_one(integrator, free):
     a = BatchedLikelihood(prob)(X)
     b = per_walker_loglike(prob, X)
     torch.testing.assert_close(a, b, rtol=1e-10, atol=0)
+    chunked = BatchedLikelihood(prob, chunk_bytes=1)  # 8-ray chunks
+    assert len(chunked.geoms) == math.ceil(prob.n_elements / 3 / 8)
+    torch.testing.assert_close(chunked(X), b, rtol=1e-10, atol=0)
 
 
 def test_rays_hitting_the_ground_and_a_tilted_sun_batch_exactly():
@@ -261,3 +264,16 @@ def test_cli_sample_then_resume_and_bad_inputs(fitted, tmp_path, capsys):
         assert rc == 2, (argv, se)
         assert msg in se and len(se.strip().splitlines()) == 1, se
     assert not (tmp_path / "m").exists() and not (tmp_path / "w").exists() and not (tmp_path / "r").exists()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_batched_log_likelihood_on_cuda_matches_the_cpu():
+    prob, _ = tiny_problem()
+    x0 = prob.param.initial_vector()
+    X = x0 + 0.3 * torch.randn(8, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    ref = per_walker_loglike(prob, X)
+    obs = prob.observations[0].to(torch.float64, "cuda")
+    base = prob.param.base.to(device="cuda")
+    cuda = FitProblem(Parameterisation(base, FREE), _model(), [obs], make_loss("squared"))
+    got = BatchedLikelihood(cuda)(X.cuda()).cpu()
+    torch.testing.assert_close(got, ref, rtol=1e-10, atol=0)

@@ -175,14 +175,15 @@ class _LayerColumns:
 class _ObsGeometry:
     """Everything about one observation's used samples that the parameters do not change."""
 
-    def __init__(self, problem: FitProblem, i: int, integrator, view_samples: int, rule: str, fixed_heights):
+    def __init__(self, problem: FitProblem, i: int, integrator, view_samples: int, rule: str, fixed_heights,
+                 rays: slice = slice(None)):
         atm = problem.param.base
         o = problem.observations[i]
         phys0 = problem.param.to_physical(problem.param.initial_vector(atm.dtype, atm.device))
         sun = problem.sun_vectors(phys0, i)
         if sun.ndim == 2:
-            sun = sun[o.mask]
-        view = o.directions[o.mask].to(atm.dtype)
+            sun = sun[o.mask][rays]
+        view = o.directions[o.mask][rays].to(atm.dtype)
         sun = torch.as_tensor(sun, dtype=atm.dtype, device=atm.device)
         mu = torch.clamp(view[..., 2], -1.0, 1.0)
         mu_s = torch.clamp(sun[..., 2], -1.0, 1.0)
@@ -231,7 +232,8 @@ class _ObsGeometry:
                 self.oz_g = oz(r0, mu0, seg)
                 self.oz_gs = oz(r_g, mu_c, distance_to_top(r_g, mu_c, Rt))
         self.n, self.N = r_j.shape
-        o_val, o_sig = o.values[o.mask], o.sigma[o.mask]
+        self.obs = i
+        o_val, o_sig = o.values[o.mask][rays], o.sigma[o.mask][rays]
         self.values, self.sigma = o_val.to(atm.dtype), o_sig.to(atm.dtype)
         self.matrix = problem.matrices[i]
         self.solar_scale = problem.solar_scale[i]
@@ -261,11 +263,13 @@ class BatchedLikelihood:
 
     Args:
         problem: the fit problem (observations, loss, renderer settings, parameterisation).
-        chunk_rays: rays per chunk of the batched computation (bounds memory: the largest
-            temporaries are B x chunk x view_samples x W floats).
+        batch_hint: the number of walkers per call expected (half the ensemble); with ``chunk_bytes``
+            it sets how many rays one chunk holds.
+        chunk_bytes: size of the largest temporaries, B x rays x view_samples x W floats, per chunk
+            (default 16 MB on the CPU, where cache-sized chunks measured faster, 1 GB elsewhere). [bytes]
     """
 
-    def __init__(self, problem: FitProblem, chunk_rays: int | None = None):
+    def __init__(self, problem: FitProblem, batch_hint: int = 16, chunk_bytes: float | None = None):
         self.problem = problem
         why = self.unsupported_reason(problem)
         if why:
@@ -286,8 +290,17 @@ class BatchedLikelihood:
             fixed[1] = float(atm0.mie_scale_height)
         m = problem.model
         self.integrator = m.integrator
-        self.geoms = [_ObsGeometry(problem, i, m.integrator, m.view_samples, m.rule, fixed) for i in range(len(problem.observations))]
-        self.chunk_rays = chunk_rays
+        if chunk_bytes is None:
+            chunk_bytes = 16e6 if torch.device(base.device).type == "cpu" else 1e9
+        W = base.wavelengths.shape[0]
+        per_ray = max(1, batch_hint) * m.view_samples * (W + 4) * torch.finfo(base.dtype).bits // 8
+        self.chunk_rays = max(8, int(chunk_bytes // per_ray))
+        self.geoms = []
+        for i, o in enumerate(problem.observations):
+            n = int(o.mask.sum())
+            for a in range(0, n, self.chunk_rays):
+                self.geoms.append(_ObsGeometry(problem, i, m.integrator, m.view_samples, m.rule, fixed,
+                                               slice(a, min(n, a + self.chunk_rays))))
         self.solar = base.solar_irradiance
         self.lam = base.wavelengths
 
@@ -389,12 +402,13 @@ class BatchedLikelihood:
         """Each observation's predicted channels (B, n_i, C_i), exposure applied."""
         phys = self.physical(X)
         c = self.coefficients(phys)
-        out = []
-        for i, geo in enumerate(self.geoms):
+        out: list[list[Tensor]] = [[] for _ in self.problem.observations]
+        for geo in self.geoms:
+            i = geo.obs
             spec = self._radiance(geo, c) * geo.solar_scale
             pred = spec @ geo.matrix
-            out.append(pred * self._nuisance(phys, "exposure", i)[:, None, None])
-        return out
+            out[i].append(pred * self._nuisance(phys, "exposure", i)[:, None, None])
+        return [torch.cat(p, 1) for p in out]
 
     def _nuisance(self, phys, name, i) -> Tensor:
         v = phys[name]
@@ -406,7 +420,8 @@ class BatchedLikelihood:
         c = self.coefficients(phys)
         ok = self.layers_ok(c)
         total = X.new_zeros(X.shape[0])
-        for i, geo in enumerate(self.geoms):
+        for geo in self.geoms:
+            i = geo.obs
             spec = self._radiance(geo, c) * geo.solar_scale
             pred = (spec @ geo.matrix) * self._nuisance(phys, "exposure", i)[:, None, None]
             s = self._nuisance(phys, "noise_scale", i)[:, None, None]

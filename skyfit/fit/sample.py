@@ -192,9 +192,10 @@ class LogPosterior:
         priors: name -> :class:`Prior` for every free parameter (:func:`make_priors`).
         batched: ``True`` one batched forward pass per call (error when unsupported), ``False`` a
             loop over walkers, ``"auto"`` batched when supported.
+        batch_hint: walkers per call expected (half the ensemble), sizes the batched chunks.
     """
 
-    def __init__(self, problem: FitProblem, priors: Mapping[str, Prior], batched: bool | str = "auto"):
+    def __init__(self, problem: FitProblem, priors: Mapping[str, Prior], batched: bool | str = "auto", batch_hint: int = 16):
         self.problem = problem
         self.priors = dict(priors)
         p = problem.param
@@ -206,7 +207,7 @@ class LogPosterior:
             raise SampleError(f"batched sampling unsupported: {reason}")
         self.batched = bool(batched) and not reason
         self.unbatched_reason = reason if batched else "one walker at a time (asked)"
-        self.likelihood = BatchedLikelihood(problem) if self.batched else None
+        self.likelihood = BatchedLikelihood(problem, batch_hint) if self.batched else None
         self.dtype, self.device = p.base.dtype, p.base.device
         self.n_calls = 0
         self.n_evaluations = 0
@@ -596,7 +597,7 @@ def sample_posterior(problem: FitProblem, x0: Tensor, out_dir: str | Path, *, wa
         raise SampleError(f"--steps must be >= 1, got {steps}")
     chain_path = out_dir / CHAIN_FILE
     priors = dict(priors) if priors is not None else make_priors(problem)
-    log_post = LogPosterior(problem, priors, batched=batched)
+    log_post = LogPosterior(problem, priors, batched=batched, batch_hint=walkers // 2)
     meta = {"signature": model_signature(problem), "walkers": walkers, "seed": seed, "steps_requested": steps,
             "x0": x0.detach().cpu().double().tolist(), "priors": {n: pr.settings() for n, pr in priors.items()}}
     backend = None
@@ -662,7 +663,7 @@ def sample_posterior(problem: FitProblem, x0: Tensor, out_dir: str | Path, *, wa
             ratios[n] = {"laplace_sigma": s_l, "emcee_sigma": s_e, "ratio": (s_l / s_e) if s_l is not None and s_e > 0 else None}
         summary["laplace_vs_emcee"] = ratios
     if final_problem is not None:
-        final_post = LogPosterior(final_problem, priors, batched=batched)
+        final_post = LogPosterior(final_problem, priors, batched=batched, batch_hint=walkers // 2)
         summary["sampler_integrator"] = {**problem.model.integrator.settings(), **problem.model.settings()}
         summary["final_integrator"] = {**final_problem.model.integrator.settings(), **final_problem.model.settings()}
         summary["integrator_bias"] = importance_bias(log_post, final_post, flat, names)
