@@ -77,7 +77,11 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--work", default="/tmp/skyfit_calibration")
     ap.add_argument("--out", default="docs/uncertainty_calibration.json")
+    ap.add_argument("--report", help="only print the table of a finished or .partial.json run")
     a = ap.parse_args(argv)
+    if a.report:
+        d = json.loads(Path(a.report).read_text())
+        return report(d["rows"], argparse.Namespace(**{**d["settings"], "out": a.out}), float("nan"))
     torch.set_num_threads(a.threads)
     rng = np.random.default_rng(a.seed)
     lam = np.linspace(420.0, 680.0, a.wavelengths)
@@ -105,10 +109,16 @@ def main(argv=None):
             row["laplace"][n] = {"in68": lo68 <= v <= hi68, "in95": lo95 <= v <= hi95, "sigma": lap["sigma"][n],
                                  "ratio_to_emcee": lap["sigma"][n] / p["std"]}
         rows.append(row)
+        write_text_atomic(Path(a.out).with_suffix(".partial.json"), dumps({"settings": vars(a), "rows": rows}))
         print(f"sky {i:2d}: tau {row['tau_max']:.0f} ({row['steps_per_tau']:.0f} steps/tau), acc {row['acceptance']:.2f}, "
               f"emcee 68/95 {sum(r['in68'] for r in row['emcee'].values())}/{sum(r['in95'] for r in row['emcee'].values())} of 5, "
               f"laplace {sum(r['in68'] for r in row['laplace'].values())}/{sum(r['in95'] for r in row['laplace'].values())}, "
               f"{row['cpu_s']:.0f} s CPU", file=sys.stderr, flush=True)
+    report(rows, a, time.process_time() - t_all)
+
+
+def report(rows, a, cpu_s):
+    """Coverage table of finished skies (also usable on a .partial.json: ``--report FILE``)."""
     n = len(rows)
     table = {}
     for method in ("emcee", "laplace"):
@@ -123,7 +133,7 @@ def main(argv=None):
     out = {"skies": n, "binomial_error68": math.sqrt(0.68 * 0.32 / n), "binomial_error95": math.sqrt(0.95 * 0.05 / n),
            "binomial_error68_pooled": math.sqrt(0.68 * 0.32 / (n * len(FREE))),
            "binomial_error95_pooled": math.sqrt(0.95 * 0.05 / (n * len(FREE))),
-           "settings": vars(a), "coverage": table, "rows": rows, "cpu_s_total": time.process_time() - t_all,
+           "settings": vars(a), "coverage": table, "rows": rows, "cpu_s_total": cpu_s,
            "laplace_over_emcee_sigma_median": {nm: float(np.median([r["laplace"][nm]["ratio_to_emcee"] for r in rows])) for nm in FREE}}
     write_text_atomic(Path(a.out), dumps(out))
     print(f"| parameter | emcee 68 % | emcee 95 % | Laplace 68 % | Laplace 95 % | Laplace/emcee sigma (median) |")

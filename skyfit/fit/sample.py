@@ -617,7 +617,7 @@ def sample_posterior(problem: FitProblem, x0: Tensor, out_dir: str | Path, *, wa
             raise SampleError(f"{chain_path} exists; continue it with --resume or choose another --out")
         rng = np.random.default_rng(seed)
         x_init = initial_ball(problem, x0, walkers, rng, log_post, init_scale, laplace)
-    t0 = time.perf_counter()
+    done_before = int(backend.iteration) if backend is not None else 0
     sampler, secs = run_chain(log_post, x_init, walkers, steps, chain_path, meta, seed=seed, backend=backend,
                               progress=progress, checkpoint_seconds=checkpoint_seconds, stop_after=stop_after)
     if stop_after is not None:
@@ -630,7 +630,8 @@ def sample_posterior(problem: FitProblem, x0: Tensor, out_dir: str | Path, *, wa
     flat = chain[diag["burn_in"]:: diag["thin"]].reshape(-1, P)
     phys = physical_samples(problem, flat)
     summ = posterior_summary(phys, names)
-    ess_per_s = {n: (e / secs if secs > 0 else None) for n, e in diag["ess"].items()}
+    # ESS per second of sampling (None for a resumed run: its ESS includes earlier runs' steps)
+    ess_per_s = {n: (e / secs if secs > 0 and done_before == 0 else None) for n, e in diag["ess"].items()}
     fit_values = physical_samples(problem, x0.detach().cpu().double().numpy()[None])
     for n, d in summ["parameters"].items():
         d["fit"] = float(fit_values[n][0]) if n in fit_values else None
@@ -640,7 +641,7 @@ def sample_posterior(problem: FitProblem, x0: Tensor, out_dir: str | Path, *, wa
         "skyfit_sample": SAMPLE_VERSION,
         **summ,
         "diagnostics": diag,
-        "throughput": {"seconds_this_run": secs, "steps_this_run": int(chain.shape[0] - (0 if backend is None else 0)),
+        "throughput": {"seconds_this_run": secs, "steps_this_run": int(chain.shape[0] - done_before),
                        "log_prob_evaluations": log_post.n_evaluations, "log_prob_calls": log_post.n_calls,
                        "evaluations_per_second": log_post.n_evaluations / secs if secs > 0 else None,
                        "ess_per_second": ess_per_s, "batched": log_post.batched,
