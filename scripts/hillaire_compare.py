@@ -1,6 +1,6 @@
 """Hillaire 2020 LUT vs Bruneton's precomputed orders 2-4: error and time side by side.
 
-Clear Earth without ozone (the direct single-scattering renderer has none), ground observer,
+Clear Earth without ozone (as first measured; both methods include it consistently), ground observer,
 view zenith 0-89 deg x azimuth 0/45/90/135/180, both methods with the same direct single
 scattering. Error = |M_hillaire - M_bruneton| / (single + M_bruneton), M = orders >= 2.
 

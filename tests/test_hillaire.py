@@ -30,7 +30,7 @@ def _one_thread():
 
 @pytest.fixture(scope="module")
 def earth():
-    # The direct single-scattering renderer has no ozone; both methods use the atmosphere without it.
+    # Without ozone, as measured in docs/hillaire.md (both methods include it consistently: tests/test_ozone.py).
     return load_atmosphere("earth", [440.0, 680.0]).replace(ozone_absorption=None)
 
 

@@ -76,7 +76,7 @@ def earth_tables(earth2) -> PrecomputedAtmosphere:
 
 @pytest.fixture(scope="module")
 def single_case():
-    # The direct renderer has no ozone; both sides use the same atmosphere without it.
+    # Both sides without ozone, as measured; with ozone on both sides: tests/test_ozone.py.
     atm = load_atmosphere("earth", [440.0, 550.0, 680.0]).replace(ozone_absorption=None)
     sizes = TableSizes(transmittance_mu=128, transmittance_r=32, irradiance_mu_s=16, irradiance_r=4,
                        scattering_r=8, scattering_mu=32, scattering_mu_s=16, scattering_nu=8)

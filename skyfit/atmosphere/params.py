@@ -31,8 +31,8 @@ class Atmosphere:
         mie_g: phase asymmetry in (-1, 1), shape (). [1]
         ground_albedo: Lambertian albedo, shape (W,). [1]
         solar_irradiance: extraterrestrial irradiance at the planet, shape (W,). [W/(m^2 nm)]
-        ozone_absorption: absorption at peak ozone density, shape (W,); slot for
-            the multiple-scattering issue, not used by the single-scattering renderer. [1/m]
+        ozone_absorption: absorption at peak ozone density, shape (W,), or None for no
+            ozone; every renderer applies it with the tent profile (docs/ozone.md). [1/m]
         ozone_layer_m: (bottom, peak, top) altitudes of the ozone tent profile. [m]
         sun_angular_radius: [rad]
         mie_phase: one of MIE_PHASES.
