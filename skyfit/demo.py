@@ -8,7 +8,8 @@
 2. Realistic noise: sigma = hypot(1 % of the radiance, 0.5 % of the median radiance)
    (gain and read noise), written as a spectral EXR with its noise model in the header.
 3. ``skyfit fit`` on that file (Chapman + Gauss-16, Hillaire 16 x 16, L-BFGS) with the
-   Laplace covariance; ``skyfit sample`` (emcee) unless ``--quick``.
+   Laplace covariance; ``skyfit sample`` (emcee, 12 walkers x 400 steps; corner plot)
+   unless ``--quick``.
 4. LUT export of the fitted atmosphere (Bruneton tables at reduced sizes).
 5. Truth vs recovered +- sigma for every free parameter, printed and in ``report.md``.
 
@@ -17,7 +18,6 @@
 from __future__ import annotations
 
 import copy
-import inspect
 import json
 import math
 import time
@@ -129,11 +129,11 @@ def _png(path: Path, rgb: np.ndarray, valid: np.ndarray) -> None:
 
 
 def _uncertainty_rows(result: dict, posterior: dict | None) -> list[dict]:
-    lap = (result.get("laplace") or {}).get("parameters") or {}
+    lap = (result.get("laplace") or {}).get("sigma") or {}
     rows = []
     for name, true in TRUTH.items():
         got = float(result["parameters"][name])
-        sig_l = (lap.get(name) or {}).get("sigma")
+        sig_l = lap.get(name)
         post = (posterior or {}).get(name) or {}
         sig_e = post.get("std")
         sig = sig_e if sig_e is not None else sig_l
@@ -174,9 +174,8 @@ def run_demo(out: str | Path, quick: bool = False, progress: bool = False, log=p
     log(f"rendered the true sky ({size}x{size}, {len(lam)} wavelengths, sun zenith {SUN[0]} deg) -> {truth_exr}, {observed_exr}")
 
     t0 = time.perf_counter()
-    kw = {"laplace": True} if "laplace" in inspect.signature(run_fit).parameters else {}
     result = run_fit([observed_exr], fit_config(quick), out / "RESULT.json", config_source="skyfit demo (earth + fit:)",
-                     plots=True, progress=progress, **kw)
+                     plots=True, progress=progress, laplace=True)
     timings["fit_s"] = time.perf_counter() - t0
     m = result["metrics"]
     log(f"fit: loss {m['loss']:.4g} (0.5 = the noise), rmse {m['rmse']:.3g} {m['rmse_units']}, "
@@ -213,18 +212,16 @@ def run_demo(out: str | Path, quick: bool = False, progress: bool = False, log=p
 
 
 def _sample(observed_exr: Path, out: Path, progress: bool, log) -> dict | None:
-    """emcee around the fit (skyfit sample) when that command exists; the posterior summary per parameter."""
-    try:
-        from .fit import sample as sample_mod
-    except ImportError:
-        return None
-    fn = getattr(sample_mod, "run_sample", None)
-    if fn is None:
-        return None
-    res = fn([observed_exr], fit_config(False), out / "RESULT.json", out / "posterior", walkers=16, steps=300,
-             progress=progress, max_samples=600)
-    log(f"emcee: {res.get('steps')} steps x {res.get('walkers')} walkers -> {out / 'posterior'}")
-    return res.get("parameters")
+    """``skyfit sample`` around the fit: emcee posterior, corner and trace plots in ``out/posterior``."""
+    from .fit.sample import run_sample
+
+    cfg = fit_config(False)
+    cfg["sample"] = {"walkers": 12, "steps": 400, "predictive_draws": 16}
+    summ = run_sample([observed_exr], cfg, out / "RESULT.json", out / "posterior", progress=progress)
+    d = summ.get("diagnostics", {})
+    log(f"emcee: {summ['sampler']['steps']} steps x {summ['sampler']['walkers']} walkers, "
+        f"max tau {max(d.get('tau', {1: float('nan')}).values()):.3g} -> {out / 'posterior'}")
+    return summ.get("parameters")
 
 
 def _export(result_path: Path, lut_dir: Path, quick: bool, read_result) -> Path:

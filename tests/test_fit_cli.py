@@ -198,3 +198,25 @@ def test_kider_capture_fit_writes_spectra_and_ring_plots(tmp_path, capsys):
     assert rc == 0, se
     ev = json.loads(so)
     assert ev["n_samples"] == 81 and ev["rmse"] == pytest.approx(res["metrics"]["rmse"], rel=1e-9)
+
+
+def test_a_diverging_fit_names_the_parameter_and_writes_nothing(sky, tmp_path, capsys, monkeypatch):
+    """A NaN gradient w.r.t. mie_g from the 4th evaluation on: exit 2, one line naming mie_g, no RESULT.json."""
+    from skyfit.fit.model import FitProblem
+
+    orig = FitProblem.objective
+
+    def poisoned(self, x):
+        loss = orig(self, x)
+        if self.n_evaluations > 3:
+            i = self.param.names.index("mie_g")
+            loss = loss + torch.sqrt(x[i] * 0.0)  # value + 0, gradient 0 * inf = NaN
+        return loss
+
+    monkeypatch.setattr(FitProblem, "objective", poisoned)
+    out = tmp_path / "r.json"
+    rc, _, err = _run(["fit", sky / "sky.exr", "--config", "earth", "--out", out, "--free", "mie_g,exposure",
+                       "--adam-steps", "0", "--no-plots", *FAST], capsys)
+    assert rc == 2
+    assert len(err.strip().splitlines()) == 1 and "diverged" in err and "mie_g" in err, err
+    assert _files(tmp_path) == []

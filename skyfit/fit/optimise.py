@@ -154,10 +154,15 @@ def _run_start(problem: FitProblem, x0: Tensor, opt: FitOptions, bar, label: str
             bad.append(f"{e} at x = {p.detach().tolist()}")
             return torch.tensor(1e30, dtype=p.dtype, device=p.device)
         if not torch.isfinite(loss):
-            bad.append(f"non-finite loss at x = {p.detach().tolist()}")
+            bad.append(f"non-finite loss at evaluation {len(history) + 1}, x = {p.detach().tolist()}")
             # a large finite value makes the line search step back instead of failing
             return torch.full_like(loss, 1e30).requires_grad_(True) * 1.0
         loss.backward()
+        if not bool(torch.isfinite(p.grad).all()):
+            names = [n for n, ok in zip(problem.param.names, torch.isfinite(p.grad).tolist()) if not ok]
+            bad.append(f"non-finite gradient w.r.t. {', '.join(names)} at evaluation {len(history) + 1}")
+            p.grad.zero_()
+            return torch.full_like(loss, 1e30)
         show(float(loss.detach()))
         return loss
 
@@ -169,8 +174,13 @@ def _run_start(problem: FitProblem, x0: Tensor, opt: FitOptions, bar, label: str
     prev = state.get("prev_loss")
     rel = abs(f_end - float(prev)) / max(abs(f_end), 1e-300) if prev is not None else math.nan
     n_iter = int(state.get("n_iter", 0))
-    if not math.isfinite(f_end):
-        reason, ok = "non-finite loss", False
+    finite = (torch.isfinite(x_end) & torch.isfinite(g_end)).tolist()
+    if not math.isfinite(f_end) or not all(finite):
+        bad_names = [n for n, ok in zip(problem.param.names, finite) if not ok]
+        reason = "diverged: non-finite " + (f"{', '.join(bad_names)}" if bad_names else "loss")
+        reason += f" after {len(history)} evaluations" + (f" ({bad[0]})" if bad else "")
+        ok = False
+        f_end = math.nan
     elif gmax <= opt.grad_tol:
         reason, ok = "gradient norm", True
     elif n_iter >= opt.max_iter:
@@ -232,7 +242,8 @@ def fit(problem: FitProblem, options: FitOptions | None = None, x0: Tensor | Non
             bar.close()
     best = min(range(len(runs)), key=lambda k: runs[k]["loss"] if math.isfinite(runs[k]["loss"]) else math.inf)
     if not math.isfinite(runs[best]["loss"]):
-        raise FitError(f"every start failed; first: {runs[0]['convergence']['reason']}")
+        what = runs[0]["convergence"]["reason"]
+        raise FitError(f"the fit {what}" if what.startswith("diverged") else f"every start failed; first: {what}")
     win = runs[best]
     conv = dict(win["convergence"])
     conv.update({"start": best, "n_starts": len(runs), "seconds_total": time.perf_counter() - t0,
