@@ -8,6 +8,7 @@ known (``sigma="known"``) so that BIC is the exact Gaussian criterion.
 from __future__ import annotations
 
 import copy
+import json
 import math
 from pathlib import Path
 
@@ -159,11 +160,60 @@ def test_multiple_scattering_dropped_for_single_scattering_noon_data_kept_at_twi
     dropped. Twilight data (sun 94 deg) rendered with it (Hillaire 2020): kept, and only then is the fit
     at the noise level (loss ~ 1/2 per element)."""
     rungs = _subset("rayleigh", "mie", "ozone", "multiple")
-    rep = ladder(_cfg(), synthetic(_cfg(), 30.0, seed=6), rungs).run()
+    rep = ladder(_cfg(), synthetic(_cfg(), 30.0, seed=6, n=120), rungs).run()
     assert "multiple" not in rep["components"], rep["why"]
     assert _rung(rep, "multiple")["delta_bic_parent"] > 0
-    rep2 = ladder(_cfg(), synthetic(_cfg(), 94.0, orders=2, seed=7), rungs).run()
+    rep2 = ladder(_cfg(), synthetic(_cfg(), 94.0, orders=2, seed=7, n=120), rungs).run()
     assert rep2["chosen"] == "multiple", rep2["why"]
     assert _rung(rep2, "multiple")["delta_bic_parent"] < -1000
     assert _rung(rep2, "multiple")["loss"] < 0.6
     assert rep2["heldout_choice"] == "multiple"
+
+
+# -- skyfit fit --select ------------------------------------------------------------------------
+def _run(argv, capsys):
+    from skyfit.cli import main
+
+    try:
+        rc = main([str(a) for a in argv])
+    except SystemExit as e:
+        rc = e.code
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def test_cli_select_writes_the_ladder_and_a_result_that_evaluate_rebuilds(tmp_path, capsys):
+    """A 10 x 10 noise-free render of the earth config (sigma 1 %, known): the ladder keeps aerosol and ozone,
+    drops multiple scattering, skips the height fog (a sky dome is not short-range), and ``evaluate`` of the
+    chosen model reproduces the fit's RMSE."""
+    common = ["render", "earth", "--size", "10", "--sun-zenith", "40", "--sun-azimuth", "120", "--wavelengths",
+              "450:650:100", "--integrator", "chapman", "--view-samples", "8", "--rule", "gauss", "--dtype", "float64"]
+    rc, _, err = _run(common + ["--out", tmp_path / "sky.exr", "--spectral"], capsys)
+    assert rc == 0, err
+    out = tmp_path / "RESULT.json"
+    fast = ["--integrator", "chapman", "--view-samples", "8", "--rule", "gauss", "--starts", "1", "--max-iter", "20",
+            "--adam-steps", "3"]
+    rc, so, err = _run(["fit", tmp_path / "sky.exr", "--config", "earth", "--out", out, "--select", "--json",
+                        "--select-sigma", "known", "--no-plots", *fast], capsys)
+    assert rc == 0, err
+    res = json.loads(out.read_text())
+    sel = res["selection"]
+    assert [r["name"] for r in sel["rungs"]][: len(RUNGS)] == [r.name for r in RUNGS]
+    assert sel["components"] == ["rayleigh", "mie", "ozone"], sel["why"]
+    fog = next(r for r in sel["rungs"] if r["name"] == "height_fog")
+    assert "flat-Earth" in fog["skipped"]
+    assert json.loads(so)["selection"]["chosen"] == sel["chosen"]
+    assert set(res["free"]) == set(next(r for r in sel["rungs"] if r["name"] == sel["chosen"])["free"])
+    rc, so, err = _run(["evaluate", out, tmp_path / "sky.exr", "--json"], capsys)
+    assert rc == 0, err
+    assert json.loads(so)["rmse"] == pytest.approx(res["metrics"]["rmse"], rel=1e-6, abs=1e-9)
+
+
+def test_cli_select_refuses_a_robust_loss(tmp_path, capsys):
+    rc, _, err = _run(["render", "earth", "--size", "8", "--out", tmp_path / "sky.exr", "--spectral", "--sun-zenith", "40",
+                       "--wavelengths", "450:650:100"], capsys)
+    assert rc == 0, err
+    out = tmp_path / "RESULT.json"
+    rc, so, err = _run(["fit", tmp_path / "sky.exr", "--config", "earth", "--out", out, "--select", "--loss", "huber"], capsys)
+    assert rc == 2 and err.count("\n") == 1 and "Gaussian" in err, err
+    assert not out.exists()

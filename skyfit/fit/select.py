@@ -43,9 +43,12 @@ dwarfs the noise, it favours ever larger models. Robust losses (huber, cauchy) a
 likelihoods and are refused.
 
 Held-out pixels: a deterministic random ``heldout`` fraction (default 20 %) of each
-observation's used samples (seeded) is masked out of every fit and scored afterwards with
-the predictive Gaussian nll per element (``scaled``: with the training s). The held-out
-choice is the rung of lowest held-out nll; the report says whether it agrees with BIC.
+observation's used samples (seeded; all channels of a sample go together) is masked out of
+every fit and scored afterwards: the held-out loss (mean r^2 / 2, the prediction error) and
+the predictive Gaussian nll per element (``scaled``: with the training s, so it also judges
+how well s was calibrated). The held-out choice is the fitted rung of lowest held-out loss;
+the report says whether it agrees with BIC and, when not, the summed held-out loss
+difference with its paired standard error.
 
 Height fog: the ``height_fog`` integrator is the flat-Earth column of Ishiyama 2018 and
 refuses rays whose flat-Earth error would exceed 1 % (:mod:`skyfit.transmittance.fog`).
@@ -188,6 +191,28 @@ class _State:
         return (self.mie, self.ozone, self.orders, self.integrator, set(self.free)) == (
             other.mie, other.ozone, other.orders, other.integrator, set(other.free))
 
+class OutsideDomain(ValueError):
+    """A parameter vector whose atmosphere is invalid (a bounded transform saturated in floating point)."""
+
+
+class _LadderProblem(FitProblem):
+    """A FitProblem whose invalid-atmosphere points are *outside the domain* (a plain ValueError), so that the
+    optimiser steps back from them as from a point the integrator refuses, instead of stopping the fit.
+
+    When a component is not in the data its shape parameters are unidentified (the aerosol
+    asymmetry g once the aerosol optical depth tends to 0): quasi-Newton steps along such a flat
+    direction saturate the interval transform, and g = lo + (hi - lo) sigmoid(x) rounds to -1 exactly.
+    """
+
+    def spectra(self, phys: dict, atm: Atmosphere | None = None) -> list:
+        if atm is None:
+            try:
+                atm = self.param.atmosphere(phys)
+            except FitError as e:
+                raise OutsideDomain(str(e)) from None
+        return super().spectra(phys, atm)
+
+
 class Ladder:
     """Builds and fits the rungs of :data:`RUNGS` for one set of observations.
 
@@ -270,7 +295,7 @@ class Ladder:
     def problem(self, st: _State, values: Mapping, observations: Sequence[Observation] | None = None) -> FitProblem:
         """The FitProblem of state ``st`` starting at physical ``values`` (default data: the training split)."""
         obs = self.train if observations is None else observations
-        return FitProblem(self._param(st, values), self.model_for(st), obs, self.loss, self.base_sun_distance_au)
+        return _LadderProblem(self._param(st, values), self.model_for(st), obs, self.loss, self.base_sun_distance_au)
 
     def _child(self, parent: _State, rung: Rung) -> tuple[_State, list[str]]:
         ch = dict(rung.changes)
@@ -348,7 +373,7 @@ class Ladder:
             if "bic" in r:
                 r["delta_bic"] = r["bic"] - best_bic
         fitted = [r for r in rows if "bic" in r]
-        held_choice = min(fitted, key=lambda r: r["heldout_nll"])["name"] if self.held else None
+        held_choice = min(fitted, key=lambda r: r["heldout_loss"])["name"] if self.held else None
         return {
             "criterion": "BIC = 2 nll + k ln n",
             "sigma": self.sigma,
@@ -373,6 +398,9 @@ class Ladder:
                "free": list(st.free), ("added" if step == "add" else "removed"): changed, "orders": st.orders,
                "integrator": st.integrator or self.model.integrator.settings().get("name")}
         reason = self._skip_reason(parent, st) if check else None
+        same = next((n for n, (other, _, _) in self._fits.items() if other.same_model(st)), None)
+        if reason is None and same is not None:
+            reason = f"the same model as '{same}', fitted already (BIC {next(r['bic'] for r in self._rows if r['name'] == same):.1f})"
         problem = None
         if reason is None:
             warm = {} if parent_name is None else self._fits[parent_name][1].parameters
@@ -407,24 +435,23 @@ class Ladder:
         return row["accepted"]
 
     def _heldout_margin(self, chosen: str, other: str) -> dict | None:
-        """Held-out nll of ``chosen`` minus ``other``, summed over held-out elements, with its paired standard error."""
+        """Held-out loss (r^2 / 2 per element) of ``chosen`` minus ``other``, summed over the held-out elements,
+        with its paired standard error sqrt(n) std(d): is the held-out preference for ``other`` beyond noise?"""
         if chosen == other:
             return None
         d = self._heldout_elements(chosen) - self._heldout_elements(other)
-        return {"versus": other, "nll_difference": float(d.sum()), "standard_error": float(d.std() * math.sqrt(d.numel())),
+        return {"versus": other, "loss_difference": float(d.sum()), "standard_error": float(d.std() * math.sqrt(d.numel())),
                 "n": int(d.numel())}
 
     def _heldout_elements(self, name: str) -> torch.Tensor:
-        """Per-element predictive nll (without the shared ln sigma_eff + ln(2 pi) / 2) of rung ``name`` on the held-out pixels."""
+        """Per-element loss of rung ``name``'s optimum on the held-out pixels, shape (n_heldout,)."""
         st, res, problem = self._fits[name]
-        row = next(r for r in self._rows if r["name"] == name)
         hp = FitProblem(problem.param, problem.model, self.held, self.loss, self.base_sun_distance_au)
-        s = row["noise_scale"]
         with torch.no_grad():
             preds = hp.predict(res.x)
             vals = [self.loss(p, o.values[o.mask], o.sigma[o.mask], reduction="none").reshape(-1)
                     for p, o in zip(preds, hp.observations)]
-        return torch.cat(vals) / s**2 + math.log(s)
+        return torch.cat(vals)
 
     def _fog_check(self, problem: FitProblem) -> str | None:
         try:
@@ -478,16 +505,16 @@ def strip_private(report: dict) -> dict:
 
 def format_table(report: dict) -> str:
     """The rung table as aligned text (one line per rung)."""
-    head = f"{'rung':14s} {'k':>3s} {'loss':>11s} {'held-out':>11s} {'BIC':>12s} {'dBIC':>9s} {'cpu s':>7s}  status"
+    head = f"{'rung':22s} {'k':>3s} {'loss':>11s} {'held-out':>11s} {'BIC':>12s} {'dBIC':>9s} {'cpu s':>7s}  status"
     lines = [head]
     for r in report["rungs"]:
         if "bic" not in r:
             why = f"skipped: {r['skipped']}" if "skipped" in r else f"failed: {r['failed']}"
-            lines.append(f"{r['name']:14s} {'':>3s} {'':>11s} {'':>11s} {'':>12s} {'':>9s} {'':>7s}  {why}")
+            lines.append(f"{r['name']:22s} {'':>3s} {'':>11s} {'':>11s} {'':>12s} {'':>9s} {'':>7s}  {why}")
             continue
         status = "chosen" if r["name"] == report["chosen"] else "accepted" if r["accepted"] else "rejected"
         held = r.get("heldout_loss")
-        lines.append(f"{r['name']:14s} {r['k']:3d} {r['loss']:11.5g} {'' if held is None else format(held, '11.5g'):>11s} "
+        lines.append(f"{r['name']:22s} {r['k']:3d} {r['loss']:11.5g} {'' if held is None else format(held, '11.5g'):>11s} "
                      f"{r['bic']:12.1f} {r['delta_bic']:+9.1f} {r['cpu_seconds']:7.1f}  {status}")
     return "\n".join(lines)
 
@@ -504,3 +531,99 @@ def selected_config(config: dict, components: Sequence[str]) -> dict:
     if "ozone" not in components:
         cfg.pop("ozone", None)
     return cfg
+
+
+SELECT_NUISANCE = ("exposure", "sun_azimuth_offset", "sun_zenith_offset")
+
+
+def run_select(data, config: dict, out, *, overrides: dict | None = None, config_source: str = "",
+               kider_site: dict | None = None, plots: bool = True, progress: bool = False, laplace: bool = False) -> dict:
+    """``skyfit fit --select``: climb the ladder on DATA, refit the chosen model on every pixel, write RESULT.json.
+
+    Same arguments and RESULT.json as :func:`skyfit.fit.run.run_fit`, plus ``result["selection"]``
+    (every rung: loss, held-out loss, k, BIC, delta BIC, parameters, time; the choice and why).
+    The result's ``config``, ``model``, ``integrator`` and ``free`` are the chosen model's, so
+    ``skyfit evaluate`` rebuilds it. Of the flags' free list only the instrument's parameters
+    (exposure, sun offsets) are used: the ladder frees the atmosphere's. The config's ``orders``
+    is ignored (the ``multiple`` rung decides it); its ``multiple`` method and LUT sizes are kept.
+    """
+    from pathlib import Path
+
+    from .losses import make_loss
+    from .report import dumps, plot_all, write_text_atomic
+    from .run import (RESULT_VERSION, _base_atmosphere, _initial_values, _load, _model, _resolve_accuracy, fit_settings,
+                      model_wavelengths)
+
+    t0 = time.perf_counter()
+    out = Path(out)
+    if out.suffix.lower() != ".json":
+        raise FitError(f"--out must name a .json file, got {out}")
+    if not isinstance(config, dict):
+        raise FitError(f"config {config_source}: must be a mapping")
+    s = fit_settings(config.get("fit"), overrides)
+    loss = make_loss(s.loss)
+    model = dataclasses.replace(_model(s), orders=1)
+    observations = _load(data, s, kider_site, s.max_samples)
+    if s.accuracy:  # the cheapest renderer setting meeting it (run_fit's rule), single scattering below 'multiple'
+        s, model = _resolve_accuracy(s, observations)
+        model = dataclasses.replace(model, orders=1)
+    rings = any("ring" in o.metadata for o in observations)
+    nuisance = [n for n in (s.free or []) if n in SELECT_NUISANCE] if s.free is not None else \
+        ["exposure"] + (["sun_azimuth_offset"] if rings else [])
+    per = s.per_observation
+    per_eff = per if per is not None else [n for n in NUISANCE if n != "noise_scale"]
+    dtype = torch.float64 if s.dtype == "float64" else torch.float32
+    lam = model_wavelengths(observations, s.wavelengths)
+    base, base_dist = _base_atmosphere(config, lam, observations, dtype)
+    options = FitOptions(starts=s.starts, seed=s.seed, adam_steps=s.adam_steps, max_iter=s.max_iter,
+                         grad_tol=s.grad_tol, rel_tol=s.rel_tol)
+    sigma = getattr(s, "select_sigma", "scaled")
+    heldout = getattr(s, "select_heldout", HELDOUT_DEFAULT)
+    ladder = Ladder(base, model, observations, loss, nuisance_free=nuisance, per_observation=per,
+                    initial=_initial_values(s, observations, nuisance, per_eff), options=options, sigma=sigma,
+                    heldout=heldout, seed=s.seed, base_sun_distance_au=base_dist)
+    report = ladder.run(progress=progress)
+    st, res_train, _ = report["_best"]
+    # the chosen model on every pixel, warm-started from its fit on the training pixels
+    problem = ladder.problem(st, {n: res_train.parameters[n] for n in st.free}, observations)
+    res = fit(problem, dataclasses.replace(options, starts=1, progress=progress))
+    param, chosen_model = problem.param, problem.model
+    metrics = problem.metrics(res.x)
+    phys = param.to_physical(res.x)
+    settings = dataclasses.asdict(s)
+    settings.update(free=list(st.free), orders=st.orders,
+                    initial={k: v for k, v in (s.initial or {}).items() if k in st.free})
+    selection = strip_private(report)
+    result = {
+        "skyfit_result": RESULT_VERSION,
+        "command": "fit --select",
+        "parameters": res.parameters,
+        "units": param.units(),
+        "derived": param.derived(phys),
+        "free": res.free,
+        "per_observation": list(param.per_observation),
+        "fitted_vector": {n: float(v) for n, v in zip(param.names, res.x.tolist())},
+        "integrator": {**chosen_model.integrator.settings(), **chosen_model.settings()},
+        "model": {**chosen_model.settings(), "wavelengths_nm": lam.tolist(), "base_sun_distance_au": base_dist,
+                  "dtype": s.dtype, "kinds": sorted({o.kind for o in observations})},
+        "loss": loss.settings(),
+        "metrics": metrics,
+        "data": [o.summary() for o in observations],
+        "convergence": {**res.convergence, "starts": res.starts},
+        "selection": selection,
+        "settings": settings,
+        "config": selected_config(config, st.components()),
+        "config_source": config_source,
+        "seconds": time.perf_counter() - t0,
+    }
+    if laplace:
+        from .laplace import laplace_summary
+
+        result["laplace"] = laplace_summary(problem, res.x)
+    if plots:
+        with torch.no_grad():
+            preds = problem.predict(res.x)
+        result["plots"] = plot_all(problem.observations, preds, out.parent, out.stem)
+    result["seconds"] = time.perf_counter() - t0
+    write_text_atomic(out, dumps(result))
+    return result
