@@ -413,7 +413,7 @@ def cmd_sample(args) -> int:
         raise UserError(f"--init: result file not found: {args.init}")
     cfg, source = _read_fit_config(args.config)
     overrides = {"walkers": args.walkers, "steps": args.steps, "seed": args.seed, "integrator": args.integrator,
-                 "view_samples": args.view_samples, "checkpoint_seconds": args.checkpoint_seconds,
+                 "view_samples": args.view_samples, "checkpoint_seconds": args.checkpoint_seconds, "accuracy": args.accuracy,
                  "batched": False if args.no_batch else None}
     try:
         res = run_sample(args.data, cfg, args.init, args.out, overrides=overrides, kider_site=_kider_site(args),
@@ -496,6 +496,8 @@ def _add_fit_parsers(sub) -> None:
     sm.add_argument("--resume", action="store_true", help="continue DIR/chain.h5 from its last checkpoint")
     sm.add_argument("--integrator", help="optical-depth integrator while sampling (default: the fit's); its bias is measured")
     sm.add_argument("--view-samples", type=int, help="view-ray samples while sampling (default: the fit's)")
+    sm.add_argument("--accuracy", help="auto (model error <= 1/3 of the data's median relative sigma), de=X or rel=X: "
+                    "the cheapest measured renderer setting meeting it while sampling (default: the fit's renderer)")
     sm.add_argument("--checkpoint-seconds", type=float, help="wall time between chain checkpoints (default 10)")
     sm.add_argument("--no-batch", action="store_true", help="evaluate the walkers one at a time (for comparison)")
     sm.add_argument("--no-plots", action="store_true", help="do not write PNG plots")

@@ -1,5 +1,6 @@
-"""`skyfit bench --quick`: the table it writes, its reference rows, the Pareto frontier and the
-Taylor-vs-trapezoid speed ratio at equal error."""
+"""`skyfit bench --quick`: the integrator table (``--study integrators``) it writes, its reference rows,
+the Pareto frontier and the Taylor-vs-trapezoid speed ratio at equal error; the trade study
+(``--study trade``): its files, references, errors, frontier and the automatic choice on its own rows."""
 from __future__ import annotations
 
 import csv
@@ -10,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from skyfit import bench
+from skyfit import bench, bench_trade
 from skyfit.bench import BenchRow, pareto_front, speed_ratio_at_equal_error
 from skyfit.cli import main
 
@@ -33,7 +34,7 @@ def quick(tmp_path_factory):
     t0 = time.perf_counter()
     try:
         with contextlib.redirect_stdout(so), contextlib.redirect_stderr(se):
-            rc = main(["bench", "--quick", "--out", str(out), "--json"])
+            rc = main(["bench", "--study", "integrators", "--quick", "--out", str(out), "--json"])
     finally:
         mp.undo()
     assert rc == 0, se.getvalue()
@@ -149,3 +150,113 @@ def test_speed_ratio_at_equal_error_by_hand():
     m_rmse = speed_ratio_at_equal_error(rows, metric="rmse_mw")
     assert [x["ratio"] for x in m_rmse] == [6.0, 2.0, None]
     assert math.isnan(_row("x", 1, math.nan, 1.0).time_per_image_s)
+
+
+# -- the trade study (skyfit bench --study trade --quick) ------------------------------------------
+TRADE_QUICK_SECONDS = 90.0
+
+
+@pytest.fixture(scope="module")
+def trade(tmp_path_factory):
+    """``skyfit bench --study trade --quick --json`` once; -> (out dir, trade.json, stdout summary, stderr, seconds)."""
+    import contextlib
+    import io
+
+    out = tmp_path_factory.mktemp("trade")
+    so, se = io.StringIO(), io.StringIO()
+    t0 = time.perf_counter()
+    with contextlib.redirect_stdout(so), contextlib.redirect_stderr(se):
+        rc = main(["bench", "--study", "trade", "--quick", "--out", str(out), "--frontier-out", str(out / "f" / "auto.json"),
+                   "--json"])
+    assert rc == 0, se.getvalue()
+    return out, json.loads((out / "trade.json").read_text()), json.loads(so.getvalue()), se.getvalue(), time.perf_counter() - t0
+
+
+def test_trade_quick_finishes_in_time_and_writes_its_files(trade):
+    out, summary, printed, err, seconds = trade
+    assert seconds < TRADE_QUICK_SECONDS
+    assert "skyfit bench trade" in err and "100%" in err
+    assert printed["command"] == summary["command"] and "--study trade --quick" in summary["command"]
+    md = (out / "trade.md").read_text()
+    assert "| Method | Light samples | No. view samples |" in md and "Speed ratio" in md and "Automatic settings" in md
+    with open(out / "trade.csv", newline="") as f:
+        lines = list(csv.DictReader(f))
+    n_scenes = len(bench_trade.QUICK_TRADE_PLAN.scenes)
+    assert len(lines) == len(summary["table"]) * n_scenes
+    assert (out / "trade_pareto.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert json.loads((out / "f" / "auto.json").read_text()) == json.loads((out / "frontier.json").read_text())
+    assert not list(out.glob(".*.tmp"))
+
+
+def test_trade_settings_cover_the_plan(trade):
+    summary = trade[1]
+    p = bench_trade.QUICK_TRADE_PLAN
+    single = [r for r in summary["table"] if r["family"] == "single"]
+    assert len(single) == len(p.single_methods) * len(p.view_samples) * len(p.rules) * len(p.dtypes)
+    multi = {r["multiple"] for r in summary["table"] if r["family"] == "multiple"}
+    assert multi == {"hillaire", "bruneton"}
+    assert all(math.isfinite(r["mean_delta_e"]) and r["cpu_s"] > 0 for r in summary["table"])
+
+
+def test_trade_references_are_converged_for_single_scattering(trade):
+    summary = trade[1]
+    chk = [r for r in summary["reference"]["check_errors"] if r["family"] == "single"]
+    typical = np.median([r["mean_delta_e"] for r in summary["table"] if r["family"] == "single"])
+    # The check (half the Gauss-Legendre nodes) is itself a good setting; the reference is better still.
+    assert max(r["mean_delta_e"] for r in chk) < min(1e-2, 0.01 * typical)
+    assert max(r["rel_rmse"] for r in chk) < 1e-3
+    # Orders >= 2 add light: their share of the radiance norm is between 5 and 60 %.
+    assert all(0.05 < v < 0.6 for v in summary["reference"]["multiple_share"].values())
+
+
+def test_trade_error_falls_with_view_samples_and_single_misses_multiple_light(trade):
+    summary = trade[1]
+    rows = {(r["integrator"], r["rule"], r["view_samples"]): r for r in summary["table"] if r["family"] == "single"}
+    for (integ, rule, n), r in rows.items():
+        if n == 4:
+            assert rows[(integ, rule, 16)]["rel_rmse"] < r["rel_rmse"]
+    # A converged single-scattering render is far from the multiple-scattering reference.
+    good = min((r for r in rows.values()), key=lambda r: r["mean_delta_e"])
+    assert good["delta_e_vs_multiple"] > 10 * good["mean_delta_e"]
+
+
+def test_trade_pareto_and_speed_ratio(trade):
+    summary = trade[1]
+    for fam in ("single", "multiple"):
+        rows = [r for r in summary["table"] if r["family"] == fam]
+        cost = np.array([r["cpu_s"] + r["prepare_cpu_s"] for r in rows])
+        de = np.array([r["mean_delta_e"] for r in rows])
+        front = [r["pareto"] for r in rows]
+        assert front == pareto_front(cost, de).tolist()
+        # No setting is both cheaper and more accurate than a frontier point.
+        for r, f in zip(rows, front):
+            if f:
+                c = r["cpu_s"] + r["prepare_cpu_s"]
+                assert not np.any((cost < c) & (de < r["mean_delta_e"]))
+    sr = summary["speed_ratio"]
+    assert sr["fast_delta_e"] < 1.0
+    assert sr["ratio"] == pytest.approx(sr["slow_cpu_s"] / sr["fast_cpu_s"])
+    if sr["equal_error"]:
+        assert sr["slow_delta_e"] <= sr["fast_delta_e"]
+
+
+def test_trade_auto_choices_meet_their_tolerance_on_the_measured_rows(trade):
+    from skyfit.render.auto import MARGIN, parse_accuracy
+
+    summary = trade[1]
+    made = [a for a in summary["auto"] if "note" not in a]
+    assert made
+    for a in made:
+        tol = parse_accuracy(a["tolerance"])
+        assert a["measured_error"] <= MARGIN * tol.value
+        assert a["cpu_s"] <= a["max_cpu_s"]
+
+
+def test_bench_flags_refused():
+    import contextlib
+    import io
+
+    se = io.StringIO()
+    with contextlib.redirect_stderr(se), contextlib.redirect_stdout(io.StringIO()):
+        rc = main(["bench", "--study", "integrators", "--frontier-out", "x.json"])
+    assert rc == 2 and "--frontier-out needs --study trade" in se.getvalue()

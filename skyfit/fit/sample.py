@@ -765,6 +765,8 @@ class SampleSettings:
         integrator: optical-depth integrator while sampling (None: the fit's); a cheaper one
             is allowed, and its bias is measured (summary ``integrator_bias``).
         view_samples, rule: the view-ray integral while sampling (None: the fit's).
+        accuracy: ``auto``, ``de=X`` or ``rel=X``: the renderer while sampling is the cheapest measured
+            setting meeting it (:mod:`skyfit.render.auto`; None: the fit's); its bias is measured too.
         checkpoint_seconds: wall time between chain checkpoints. [s]
         predictive_draws: posterior draws for the predictive spread image.
         init_scale: initial ball radius in units of the Laplace sigma.
@@ -778,6 +780,7 @@ class SampleSettings:
     integrator: str | None = None
     view_samples: int | None = None
     rule: str | None = None
+    accuracy: str | None = None
     checkpoint_seconds: float = 10.0
     predictive_draws: int = 64
     init_scale: float = 0.1
@@ -798,7 +801,7 @@ def sample_settings(section: dict | None, overrides: dict | None = None) -> Samp
 
 
 def build_problem(data, config: dict, init: dict, init_path, kider_site: dict | None, integrator: str | None = None,
-                  view_samples: int | None = None, rule: str | None = None):
+                  view_samples: int | None = None, rule: str | None = None, accuracy: str | None = None):
     """(problem, x0) for DATA with the fit settings, free set and fitted values of the RESULT.json ``init``.
 
     The masks, loss, noise model and renderer are the fit's (``init['settings']``); ``integrator``,
@@ -814,6 +817,8 @@ def build_problem(data, config: dict, init: dict, init_path, kider_site: dict | 
     loss = R.make_loss(s.loss)
     model = R._model(s)
     observations = R._load(data, s, kider_site, s.max_samples)
+    if accuracy:  # the sampler's own tolerance (skyfit.render.auto) on these observations
+        s, model = R._resolve_accuracy(dataclasses.replace(s, accuracy=accuracy), observations)
     free = list(init["free"])
     per = init.get("per_observation")
     dtype = torch.float64 if s.dtype == "float64" else torch.float32
@@ -851,8 +856,9 @@ def run_sample(data, config: dict, init_path, out_dir, *, overrides: dict | None
         raise SampleError("config must be a mapping")
     ss = sample_settings(config.get("sample"), overrides)
     t0 = time.perf_counter()
-    cheap = ss.integrator is not None or ss.view_samples is not None or ss.rule is not None
-    problem, x0 = build_problem(data, config, init, init_path, kider_site, ss.integrator, ss.view_samples, ss.rule)
+    cheap = ss.integrator is not None or ss.view_samples is not None or ss.rule is not None or ss.accuracy is not None
+    problem, x0 = build_problem(data, config, init, init_path, kider_site, ss.integrator, ss.view_samples, ss.rule,
+                                accuracy=ss.accuracy)
     final_problem = None
     if cheap:
         final_problem, _ = build_problem(data, config, init, init_path, kider_site)
