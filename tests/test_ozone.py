@@ -391,3 +391,13 @@ def test_recovers_the_ozone_column_from_a_synthetic_spectral_sky():
     res = fit(problem, FitOptions(starts=1))
     assert res.parameters["ozone_column"] == pytest.approx(380.0, rel=0.05)
     assert res.parameters["exposure"] == pytest.approx(1.2, rel=0.02)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_matches_cpu():
+    cases = _column_cases()[::5]
+    T = lambda i, dev: torch.tensor([c[i] for c in cases], dtype=F64, device=dev)  # noqa: E731
+    cpu = ozone_column(T(0, "cpu"), T(1, "cpu"), T(2, "cpu"), R, LAYER)
+    gpu = ozone_column(T(0, "cuda"), T(1, "cuda"), T(2, "cuda"), R, LAYER)
+    assert gpu.device.type == "cuda"
+    assert_close(gpu.cpu(), cpu, rtol=1e-12, atol=1e-9)
