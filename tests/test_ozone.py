@@ -128,6 +128,12 @@ def test_column_dtypes(dtype):
     assert float(err.max()) < rtol + atol_rel, float(err.max())
 
 
+def test_bad_layer_is_refused():
+    one = torch.ones(1, dtype=F64)
+    with pytest.raises(ValueError, match=r"bottom < peak < top, got \(25000.0, 10000.0, 40000.0\)"):
+        ozone_column(one * R, one, one, R, (25e3, 10e3, 40e3))
+
+
 def test_vertical_columns_closed_form():
     """Vertical rays: the tent's integral in altitude, (top - bottom) / 2 through the whole layer."""
     lo, pk, hi = LAYER

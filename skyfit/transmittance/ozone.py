@@ -95,11 +95,13 @@ def ozone_column(r: Tensor, mu: Tensor, length: Tensor, bottom_radius: float, la
         length: segment length >= 0, shape (...). [m]
         bottom_radius: planet radius R. [m]
         layer_m: (bottom, peak, top) altitudes of the tent, floats or tensors of shape ()
-            (0 <= bottom < peak < top). [m]
+            (0 <= bottom < peak < top; checked for floats, ValueError otherwise). [m]
 
     Returns:
         Column, shape broadcast of (r, mu, length); follows their dtype and device. [m]
     """
+    if all(isinstance(v, (int, float)) for v in layer_m) and not (len(layer_m) == 3 and 0 <= layer_m[0] < layer_m[1] < layer_m[2]):
+        raise ValueError(f"ozone layer_m must be (bottom, peak, top) with 0 <= bottom < peak < top, got {tuple(layer_m)}")
     # The split points depend on (r, mu) only: computed on their shape, so that segments of one ray
     # with many lengths (the view-ray samples, r and mu of shape (n, 1), length (n, N)) share them.
     r, mu = torch.broadcast_tensors(r, mu)
