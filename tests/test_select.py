@@ -19,7 +19,7 @@ import torch
 import skyfit
 from skyfit.atmosphere import atmosphere_from_config, load_yaml
 from skyfit.camera.fisheye import zenith_azimuth_to_enu
-from skyfit.fit import FitOptions, FitProblem, Observation, SkyModel, make_loss
+from skyfit.fit import FitOptions, Observation, SkyModel, make_loss
 from skyfit.fit.parameters import FitError
 from skyfit.fit.select import RUNGS, Ladder, gaussian_nll, heldout_split, log_sigma_sum
 from skyfit.render.sky import render_vectors

@@ -17,7 +17,8 @@ rung               what changes                                           parame
 
 The ladder is climbed by forward selection in this fixed order: each rung is the *best
 model so far* plus its component, fitted warm-started from that model's optimum (new
-parameters start at the config's values). A rung is accepted when it lowers BIC below the
+parameters, and bounded ones the smaller model drove to a bound, :func:`at_bound`, start
+at the config's values). A rung is accepted when it lowers BIC below the
 best so far; a rejected rung's component is left out of every later rung ("the ladder drops
 it"). Every rung is nested in the rungs built on it (Mie off is beta_M = 0, ozone off is a
 zero column, single scattering is the multiple term switched off), and the chosen model is
@@ -117,6 +118,25 @@ RUNGS: tuple[Rung, ...] = (
 """The ladder in the order it is climbed (module table)."""
 
 
+AT_BOUND: float = 1e-3
+"""A bounded parameter whose position u in its range (sigmoid(x) of the interval transforms) is within this of 0
+or 1 is *at its bound*: its gradient is ~u (1 - u) times smaller, so a warm start there cannot leave it [1]."""
+
+
+def at_bound(name: str, value) -> bool:
+    """True when ``value`` of the ``interval``/``loginterval`` parameter ``name`` lies within AT_BOUND of a bound."""
+    spec = PARAMETERS[name]
+    if spec.transform not in ("interval", "loginterval") or not math.isfinite(spec.hi):
+        return False
+    vals = value if isinstance(value, (list, tuple)) else [value]
+    for v in vals:
+        u = ((v - spec.lo) / (spec.hi - spec.lo) if spec.transform == "interval"
+             else math.log(v / spec.lo) / math.log(spec.hi / spec.lo))
+        if not AT_BOUND < u < 1 - AT_BOUND:
+            return True
+    return False
+
+
 def evidence_label(delta_bic: float) -> str:
     """Kass & Raftery 1995 (Sec. 3.2) scale for a BIC difference in favour of a model."""
     d = abs(delta_bic)
@@ -190,6 +210,7 @@ class _State:
     def same_model(self, other: "_State") -> bool:
         return (self.mie, self.ozone, self.orders, self.integrator, set(self.free)) == (
             other.mie, other.ozone, other.orders, other.integrator, set(other.free))
+
 
 class OutsideDomain(ValueError):
     """A parameter vector whose atmosphere is invalid (a bounded transform saturated in floating point)."""
@@ -405,6 +426,11 @@ class Ladder:
         if reason is None:
             warm = {} if parent_name is None else self._fits[parent_name][1].parameters
             values = {n: warm[n] for n in st.free if n in warm and n in parent.free}
+            stuck = [n for n, v in values.items() if at_bound(n, v)]
+            for n in stuck:  # a bounded parameter the parent drove to its bound restarts at the config's value
+                del values[n]
+            if stuck:
+                row["restarted"] = stuck
             try:
                 problem = self.problem(st, values)
             except (FitError, ValueError) as e:
