@@ -724,9 +724,12 @@ def _trade_plot(summary: dict, path: Path) -> None:
             key = (r["integrator"].split(":")[0] if r["multiple"] is None else
                    f"hillaire {r['hillaire_lut']}" if r["multiple"] == "hillaire" else f"bruneton {r['table_sizes']}")
             groups.setdefault(f"{key} {r['dtype'][-2:]}", []).append(r)
+        methods = sorted({k.rsplit(" ", 1)[0] for k in groups})
+        cmap = plt.get_cmap("tab20" if len(methods) > 10 else "tab10")
         for k, g in sorted(groups.items()):
             ax.scatter([1e3 * (r["cpu_s"] + r["prepare_cpu_s"]) for r in g], [r["mean_delta_e"] for r in g], s=12,
-                       alpha=0.7, label=k, marker="o" if k.endswith("32") else "^")
+                       alpha=0.75, label=k, marker="o" if k.endswith("32") else "^",
+                       color=cmap(methods.index(k.rsplit(" ", 1)[0]) % cmap.N))
         front = sorted((r for r in rows if r.get("pareto")), key=lambda r: r["cpu_s"] + r["prepare_cpu_s"])
         if front:
             ax.step([1e3 * (r["cpu_s"] + r["prepare_cpu_s"]) for r in front], [r["mean_delta_e"] for r in front],
