@@ -7,6 +7,7 @@ perturbed start. Prints one JSON line per case: wall time, evaluations,
 convergence, truth, recovered values and relative errors.
 
     .venv/bin/python scripts/fit_recovery.py --size 128 --wavelengths 16 --threads 2
+    .venv/bin/python scripts/fit_recovery.py --orders 2 --cases earth,hazy,hazy75 --threads 1   # + ground albedo
 
 The truth may be rendered with a more accurate model than the fit uses
 (``--truth-integrator gauss:samples=64 --truth-view-samples 64``) to see the
@@ -34,7 +35,11 @@ CASES = {
                         "exposure": 1.3}, (40.0, 120.0)),
     "hazy": ("earth_hazy", {"mie_beta_550": 8.0e-5, "mie_scale_height": 900.0, "mie_g": 0.6, "rayleigh_scale": 0.95,
                             "exposure": 0.8}, (65.0, 250.0)),
+    "hazy75": ("earth_hazy", {"mie_beta_550": 4.0e-5, "mie_scale_height": 800.0, "mie_g": 0.7, "rayleigh_scale": 1.02,
+                              "exposure": 1.1}, (75.0, 30.0)),
 }
+ALBEDO = {"earth": 0.3, "hazy": 0.2, "hazy75": 0.5}
+"""True ground albedo with --orders >= 2 (then ``ground_albedo`` is free too, starting at 0.1)."""
 START = {"mie_beta_550": 1.0e-5, "mie_scale_height": 1200.0, "mie_g": 0.7, "rayleigh_scale": 1.0, "exposure": 1.0}
 FREE = list(START)
 
@@ -53,6 +58,9 @@ def run_case(name, args) -> dict:
         truth["mie_aod_550"] = truth.pop("mie_beta_550") * truth["mie_scale_height"]
         start["mie_aod_550"] = start.pop("mie_beta_550") * start["mie_scale_height"]
         free = [("mie_aod_550" if n == "mie_beta_550" else n) for n in free]
+    if args.orders > 1:
+        truth["ground_albedo"], start["ground_albedo"] = ALBEDO[name], 0.1
+        free.append("ground_albedo")
     lam = np.linspace(400.0, 700.0, args.wavelengths)
     base = load_atmosphere(cfg, lam)
     cam = FisheyeCamera(args.size)
@@ -63,7 +71,8 @@ def run_case(name, args) -> dict:
     n = view.shape[0]
     ones = torch.ones(n, len(lam), dtype=torch.float64)
     truth_model = SkyModel(parse_integrator(args.truth_integrator or args.integrator),
-                           view_samples=args.truth_view_samples or args.view_samples, rule=args.truth_rule or args.rule)
+                           view_samples=args.truth_view_samples or args.view_samples, rule=args.truth_rule or args.rule,
+                           orders=args.orders)
     p_true = Parameterisation(base, free, values=truth)
     t0 = time.perf_counter()
     with torch.no_grad():
@@ -73,7 +82,7 @@ def run_case(name, args) -> dict:
     gen = torch.Generator().manual_seed(args.seed)
     noisy = clean * (1 + args.noise * torch.randn(clean.shape, generator=gen, dtype=torch.float64))
     obs = observation(noisy, args.noise * clean, view, sz, sa, lam)
-    model = SkyModel(parse_integrator(args.integrator), view_samples=args.view_samples, rule=args.rule)
+    model = SkyModel(parse_integrator(args.integrator), view_samples=args.view_samples, rule=args.rule, orders=args.orders)
     param = Parameterisation(base, free, values=start)
     problem = FitProblem(param, model, [obs], make_loss("squared"))
     t0, c0 = time.perf_counter(), time.process_time()
@@ -81,7 +90,7 @@ def run_case(name, args) -> dict:
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     rel = {k: res.parameters[k] / truth[k] - 1 for k in free}
     return {
-        "case": name, "size": args.size, "wavelengths": args.wavelengths, "samples": n, "integrator": args.integrator,
+        "case": name, "orders": args.orders, "size": args.size, "wavelengths": args.wavelengths, "samples": n, "integrator": args.integrator,
         "view_samples": args.view_samples, "rule": args.rule, "truth_integrator": args.truth_integrator or args.integrator,
         "threads": torch.get_num_threads(), "render_seconds": round(t_render, 2), "fit_seconds": round(seconds, 2),
         "fit_cpu_seconds": round(cpu, 2), "load_average": [round(v, 2) for v in os.getloadavg()],
@@ -110,6 +119,7 @@ def main() -> None:
     ap.add_argument("--max-samples", type=int, help="use every k-th pixel so that at most this many remain")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--cases", default="earth,hazy")
+    ap.add_argument("--orders", type=int, default=1, help=">= 2: Hillaire multiple scattering, ground_albedo free too")
     ap.add_argument("--progress", action="store_true")
     ap.add_argument("--aod", action="store_true", help="fit mie_aod_550 instead of mie_beta_550")
     args = ap.parse_args()
