@@ -177,6 +177,24 @@ def test_taylor_is_exact_for_vertical_rays_at_every_scale_height(reference_cache
             assert col == pytest.approx(ref, rel=1e-9, abs=1e-3), (label, H)
 
 
+def test_single_scattering_matches_scipy_at_the_extreme_phase_and_extinction():
+    """g = +-0.9999 (forward/backward peak, the view at the sun included) and beta = 1e-2 /m, against the
+    independent scipy reference of tests/test_single_scattering_reference.py, float64, converged outer rule
+    (measured max 2.9e-5: Earth from space at the ground horizon, sun 90.27 deg)."""
+    from test_single_scattering_reference import Reference
+
+    grid = S.Grid(
+        altitudes=(("ground", 0.0), ("space (2 x top)", None)), sun_zenith_deg=(0.0, 90.27),
+        scale_heights=(), betas=(1e-2,), mie_g=(-0.9999, 0.9999),
+    )
+    cells = S.radiance_errors("gauss", {"samples": 64}, Reference, grid, dtypes=(torch.float64,), view_samples=512)
+    for key in [("float64", "base", "Earth"), ("float64", "beta", "0.01 /m"), ("float64", "g", "-0.9999"), ("float64", "g", "0.9999")]:
+        c = cells[key]
+        assert c["n"] == 72 and c["refused"] == 0
+        assert c["max_rel_err"] <= 2e-4, (key, c["max_rel_err"], c["worst"])
+    assert cells[("float64", "view", "at the sun")]["n"] == 16
+
+
 def test_chapman_refuses_scale_heights_beyond_its_regime():
     atm = S.base_atmosphere()
     integ = make_integrator("chapman")
