@@ -28,8 +28,8 @@ def table(results: list[dict]) -> str:
     """Markdown: one row per capture (chosen components, BIC margins, held-out choice, fit quality, CPU time)."""
     lines = [
         "| capture | sun zenith [deg] | chosen rung | components | ΔBIC to parent | held-out choice (Δloss ± SE) "
-        "| RMSE [mW/(m² sr nm)] | ΔE | CPU [s] |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| `multiple` rung: ΔBIC, held-out loss (chosen's) | RMSE [mW/(m² sr nm)] | ΔE | CPU [s] |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         sel = r["selection"]
@@ -43,7 +43,10 @@ def table(results: list[dict]) -> str:
         sz = sz.get("mean") if isinstance(sz, dict) else sz
         sz_s = "" if sz is None else f"{float(sz):.1f}"
         cpu = sum(x.get("cpu_seconds", 0.0) for x in sel["rungs"])
-        lines.append(f"| {r['capture']} | {sz_s} | {sel['chosen']} | {' + '.join(sel['components'])} | {dpar} | {held_s} "
+        ms = rows.get("multiple", {})
+        ms_s = (f"{ms['delta_bic']:+.0f}, {ms['heldout_loss']:.3g} ({c['heldout_loss']:.3g})" if "bic" in ms
+                else ms.get("skipped", ms.get("failed", "")))
+        lines.append(f"| {r['capture']} | {sz_s} | {sel['chosen']} | {' + '.join(sel['components'])} | {dpar} | {held_s} | {ms_s} "
                      f"| {r['metrics']['rmse']:.3g} | {r['metrics']['delta_e']:.3g} | {cpu:.0f} |")
     return "\n".join(lines) + "\n"
 

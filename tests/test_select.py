@@ -52,11 +52,12 @@ def _model(orders: int = 1) -> SkyModel:
 
 
 def synthetic(cfg: dict, sun_zenith: float, orders: int = 1, seed: int = 0, exposure: float = 1.2,
-              noise: float = 0.01, n: int = N_DIRS) -> Observation:
-    """A noisy observation of ``cfg``'s sky at ``n`` random directions 5-90 deg above the horizon."""
+              noise: float = 0.01, n: int = N_DIRS, min_elevation: float = 5.0) -> Observation:
+    """A noisy observation of ``cfg``'s sky at ``n`` random directions ``min_elevation``-90 deg above the horizon."""
     atm = atmosphere_from_config(cfg, LAM)
     gen = torch.Generator().manual_seed(seed)
-    mu = math.sin(math.radians(5.0)) + (1 - math.sin(math.radians(5.0))) * torch.rand(n, generator=gen, dtype=torch.float64)
+    lo = math.sin(math.radians(min_elevation))
+    mu = lo + (1 - lo) * torch.rand(n, generator=gen, dtype=torch.float64)
     az = 2 * math.pi * torch.rand(n, generator=gen, dtype=torch.float64)
     dirs = zenith_azimuth_to_enu(torch.acos(mu), az)
     sz, sa = torch.tensor(math.radians(sun_zenith), dtype=torch.float64), torch.tensor(2.0, dtype=torch.float64)
@@ -217,3 +218,17 @@ def test_cli_select_refuses_a_robust_loss(tmp_path, capsys):
     rc, so, err = _run(["fit", tmp_path / "sky.exr", "--config", "earth", "--out", out, "--select", "--loss", "huber"], capsys)
     assert rc == 2 and err.count("\n") == 1 and "Gaussian" in err, err
     assert not out.exists()
+
+
+def test_height_fog_rung_is_fitted_only_for_a_flat_earth_scene():
+    """Views within 8 deg of the zenith and the sun 5 deg from it: every segment's curvature fraction is below
+    1 %, so the flat-Earth height-fog rung is fitted; it fits no better than Chapman (both near exact on steep
+    rays), so it is not taken. A sky down to 5 deg elevation is refused with the integrator's reason."""
+    rungs = _subset("rayleigh", "mie", "height_fog")
+    rep = ladder(_cfg(), synthetic(_cfg(ozone=False), 5.0, seed=9, n=100, min_elevation=82.0), rungs).run()
+    fog = _rung(rep, "height_fog")
+    assert "bic" in fog and fog["integrator"] == "height_fog", fog
+    assert abs(fog["delta_bic_parent"]) < 2 and not fog["accepted"]
+    assert rep["components"] == ["rayleigh", "mie"]
+    rep2 = ladder(_cfg(), synthetic(_cfg(ozone=False), 5.0, seed=9, n=60), rungs).run()
+    assert "flat-Earth" in _rung(rep2, "height_fog")["skipped"]

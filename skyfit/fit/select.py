@@ -18,11 +18,14 @@ rung               what changes                                           parame
 The ladder is climbed by forward selection in this fixed order: each rung is the *best
 model so far* plus its component, fitted warm-started from that model's optimum (new
 parameters, and bounded ones the smaller model drove to a bound, :func:`at_bound`, start
-at the config's values). A rung is accepted when it lowers BIC below the
-best so far; a rejected rung's component is left out of every later rung ("the ladder drops
-it"). Every rung is nested in the rungs built on it (Mie off is beta_M = 0, ozone off is a
-zero column, single scattering is the multiple term switched off), and the chosen model is
-the fitted rung of lowest BIC.
+at the config's values). A rung is accepted when it lowers BIC by more than
+:data:`MIN_DELTA_BIC` (2) below the best so far; a rejected rung's component is left out of
+every later rung ("the ladder drops it"). Then, backward, each component of the best model
+is removed in turn while that does not raise BIC by 2 or more (a component taken early as a
+stand-in for a later one is dropped again). Every rung is nested in the rungs built on it
+(Mie off is beta_M = 0, ozone off is a zero column, single scattering is the multiple term
+switched off). The chosen model is the last accepted one: the lowest BIC, unless a bigger
+model is lower by less than 2.
 
 Criterion (Schwarz 1978)::
 
@@ -76,9 +79,11 @@ from .optimise import FitOptions, FitResult, fit
 from .parameters import NUISANCE, PARAMETERS, FitError, Parameterisation
 
 SIGMA_MODES = ("scaled", "known")
-TIE_TOLERANCE: float = 1e-9
-"""A rung must lower BIC by more than this x |BIC| to be accepted: smaller differences are the optimiser's
-round-off (a component that changes nothing, like ozone in a renderer that ignores it, ties its parent) [1]."""
+MIN_DELTA_BIC: float = 2.0
+"""The bigger of two nested models must have a BIC lower by more than this to be preferred: an addition is
+accepted when it lowers BIC by more than 2, a removal when it raises BIC by less than 2. Below 2 Kass & Raftery
+1995 (Sec. 3.2) call the evidence "not worth more than a bare mention"; it also absorbs the optimiser's round-off
+between equivalent models (the height-fog column against Chapman's on steep rays, ozone in a renderer without it)."""
 HELDOUT_DEFAULT: float = 0.2
 """Fraction of each observation's used samples held out of the fits and scored afterwards [1]."""
 
@@ -251,13 +256,14 @@ class Ladder:
         seed: seed of the held-out split.
         base_sun_distance_au: as :class:`~skyfit.fit.model.FitProblem`.
         rungs: the ladder (default :data:`RUNGS`).
+        min_delta_bic: BIC margin a bigger model needs (:data:`MIN_DELTA_BIC`).
     """
 
     def __init__(self, atmosphere: Atmosphere, model: SkyModel, observations: Sequence[Observation], loss: Loss, *,
                  nuisance_free: Sequence[str] = ("exposure",), per_observation: Sequence[str] | None = None,
                  initial: Mapping | None = None, options: FitOptions | None = None, sigma: str = "scaled",
                  heldout: float = HELDOUT_DEFAULT, seed: int = 0, base_sun_distance_au: float = 1.0,
-                 rungs: Sequence[Rung] = RUNGS):
+                 rungs: Sequence[Rung] = RUNGS, min_delta_bic: float = MIN_DELTA_BIC):
         if sigma not in SIGMA_MODES:
             raise FitError(f"unknown sigma mode {sigma!r}; valid: {', '.join(SIGMA_MODES)}")
         if loss.rho != "squared":
@@ -278,6 +284,9 @@ class Ladder:
         self.sigma = sigma
         self.heldout = heldout
         self.rungs = tuple(rungs)
+        if not min_delta_bic >= 0:
+            raise FitError(f"min_delta_bic must be >= 0, got {min_delta_bic}")
+        self.min_delta_bic = float(min_delta_bic)
         self.base_sun_distance_au = base_sun_distance_au
         self.train, self.held = heldout_split(self.observations, heldout, seed)
         self.log_sigma_train, self.n_train = log_sigma_sum(self.train, loss)
@@ -454,7 +463,8 @@ class Ladder:
             "converged", "reason", "iterations", "evaluations_total", "grad_norm")})
         best = self._best_bic
         row["delta_bic_parent"] = None if parent_name is None else row["bic"] - best
-        row["accepted"] = parent_name is None or row["bic"] < best - TIE_TOLERANCE * max(1.0, abs(best))
+        margin = self.min_delta_bic if step == "add" else -self.min_delta_bic
+        row["accepted"] = parent_name is None or row["bic"] < best - margin
         if row["accepted"]:
             self._best, self._best_bic = name, row["bic"]
         self._rows.append(row)
@@ -506,17 +516,20 @@ class Ladder:
     def _why(rows: list[dict], chosen: str) -> str:
         by = {r["name"]: r for r in rows}
         c = by[chosen]
-        parts = [f"'{chosen}' ({' + '.join(c['components'])}) has the lowest BIC ({c['bic']:.1f}, k = {c['k']})"]
+        lowest = min((r for r in rows if "bic" in r), key=lambda r: r["bic"])
+        parts = [f"'{chosen}' ({' + '.join(c['components'])}): BIC {c['bic']:.1f}, k = {c['k']}"
+                 + (", the lowest" if lowest is c else f"; '{lowest['name']}' is {c['bic'] - lowest['bic']:.1f} lower, "
+                    f"less than the {MIN_DELTA_BIC:g} a bigger model needs")]
         if c["parent"] is not None:
             d = by[c["parent"]]["bic"] - c["bic"]
             size = "smaller" if c.get("step") == "add" else "bigger"
-            parts.append(f"{d:.1f} below the {size} model '{c['parent']}' ({evidence_label(d)} evidence)")
+            parts.append(f"{d:+.1f} against the {size} model '{c['parent']}' ({evidence_label(d)})")
         for r in rows:
             if r.get("parent") == chosen and "bic" in r:
                 d = r["bic"] - c["bic"]
                 what = "adding" if r.get("step") == "add" else "dropping"
                 comp = r["name"] if r.get("step") == "add" else r["name"].split(" - ")[-1]
-                parts.append(f"{what} '{comp}' raises it by {d:+.1f} ({evidence_label(d)} evidence against)")
+                parts.append(f"{what} '{comp}': ΔBIC {d:+.1f} ({evidence_label(d)})")
         skipped = [f"'{r['name']}' skipped ({r['skipped']})" for r in rows if "skipped" in r]
         skipped += [f"'{r['name']}' failed ({r['failed']})" for r in rows if "failed" in r]
         return "; ".join(parts + skipped)
