@@ -219,4 +219,6 @@ def test_full_grid_report(tmp_path):
     rows = [ln.split("|") for ln in text.splitlines() if re.match(r"\| \S.* \| float(32|64) \| \d+ \| \d+ \|", ln)]
     assert rows
     for row in rows:
-        assert row[4].strip() == "0" and row[5].strip() == "0" and row[7].strip() == "0" and row[9].strip() == "0", row
+        # | method | dtype | rays | values checked | non-finite | negative | gradients checked | non-finite | refused | errors |
+        assert int(row[4]) > 0 or int(row[9]) == int(row[3]), row
+        assert row[5].strip() == "0" and row[6].strip() == "0" and row[8].strip() == "0" and row[10].strip() == "0", row
