@@ -210,13 +210,16 @@ def test_cli_select_writes_the_ladder_and_a_result_that_evaluate_rebuilds(tmp_pa
     assert json.loads(so)["rmse"] == pytest.approx(res["metrics"]["rmse"], rel=1e-6, abs=1e-9)
 
 
-def test_cli_select_refuses_a_robust_loss(tmp_path, capsys):
+def test_cli_select_refuses_a_robust_loss_and_a_bad_heldout_fraction(tmp_path, capsys):
     rc, _, err = _run(["render", "earth", "--size", "8", "--out", tmp_path / "sky.exr", "--spectral", "--sun-zenith", "40",
                        "--wavelengths", "450:650:100"], capsys)
     assert rc == 0, err
     out = tmp_path / "RESULT.json"
     rc, so, err = _run(["fit", tmp_path / "sky.exr", "--config", "earth", "--out", out, "--select", "--loss", "huber"], capsys)
     assert rc == 2 and err.count("\n") == 1 and "Gaussian" in err, err
+    assert not out.exists()
+    rc, so, err = _run(["fit", tmp_path / "sky.exr", "--config", "earth", "--out", out, "--select", "--heldout", "1.5"], capsys)
+    assert rc == 2 and err.count("\n") == 1 and "held-out fraction" in err, err
     assert not out.exists()
 
 
