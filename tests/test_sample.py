@@ -295,3 +295,14 @@ def test_integrator_bias_is_measured_by_reweighting(tmp_path):
     b = s["integrator_bias"]
     assert s["sampler_integrator"]["view_samples"] == 2 and s["final_integrator"]["view_samples"] == 4
     assert 0 < b["max_abs_shift_in_sigma"] < math.inf and b["log_like_difference"]["std"] > 0
+
+
+def test_joint_fit_with_per_observation_exposure_and_a_robust_loss_batches_exactly():
+    o1, _ = tiny_observation(seed=1)
+    o2, _ = tiny_observation(seed=2, sun=(60.0, 200.0))
+    base = atmosphere_from_config(_config(), LAM)
+    p = Parameterisation(base, FREE + ["noise_scale"], 2)
+    prob = FitProblem(p, _model(), [o1, o2], make_loss("huber"))
+    assert p.names[4:6] == ["exposure[0]", "exposure[1]"]
+    X = p.initial_vector() + 0.3 * torch.randn(6, p.size, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    torch.testing.assert_close(BatchedLikelihood(prob)(X), per_walker_loglike(prob, X), rtol=1e-10, atol=0)
