@@ -10,7 +10,9 @@ misses its tolerance.
 
     .venv/bin/python scripts/auto_settings_check.py [--size 26] [--families single,multiple]
 
-Times are process CPU seconds with 1 torch thread (render + per-atmosphere precomputation).
+Times are process CPU seconds with 1 torch thread (render + per-atmosphere precomputation), best of 2.
+"Most expensive": the setting of the family with the largest median render cost over the scenes plus the
+median precomputation cost of its method (float32).
 """
 from __future__ import annotations
 
@@ -50,6 +52,11 @@ def main() -> int:
     cache: dict = {}
 
     def render(setting: dict, sc: Scene) -> tuple[np.ndarray, float]:
+        """Best of two renders (each with its precomputation): (radiance, process CPU s)."""
+        (img, c1), (_, c2) = render_once(setting, sc), render_once(setting, sc)
+        return img, min(c1, c2)
+
+    def render_once(setting: dict, sc: Scene) -> tuple[np.ndarray, float]:
         atm = atms[setting["dtype"]]
         c0 = time.process_time()
         if setting["multiple"] == "bruneton":
@@ -80,7 +87,20 @@ def main() -> int:
         for fam in fams:
             orders = 1 if fam == "single" else 2
             ids = {st["id"]: st for st in fr["settings"] if st["family"] == fam and st["dtype"] == "float32"}
-            dear_id = max(ids, key=lambda i: fr["results"][i][sc.name]["cpu_s"] + fr["results"][i][sc.name].get("prepare_cpu_s", 0))
+            # The most expensive setting: largest median render cost over the scenes plus the median precomputation
+            # cost of its method (each precomputation was timed once; one was a 10x load spike).
+            def prep_key(st):
+                return (st["integrator"].split(":")[0] if st["multiple"] is None else st["multiple"], st["hillaire_lut"],
+                        st["table_sizes"], st["orders"])
+
+            prep = {}
+            for i, st in ids.items():
+                prep.setdefault(prep_key(st), []).append(next(iter(fr["results"][i].values())).get("prepare_cpu_s", 0.0))
+
+            def typical_cost(i):
+                return float(np.median([v["cpu_s"] for v in fr["results"][i].values()]) + np.median(prep[prep_key(ids[i])]))
+
+            dear_id = max(ids, key=typical_cost)
             for tol_text in TOLERANCES[fam]:
                 tol = parse_accuracy(tol_text)
                 try:

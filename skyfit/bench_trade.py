@@ -697,7 +697,8 @@ def trade_markdown(summary: dict, plan: TradePlan) -> str:
     md += ["## Automatic settings on the fixed scenes (float32)", "",
            "`skyfit.render.auto.choose` on this run's measurements: the chosen setting, its measured error (the tolerance's "
            "metric, worst of the bracketing scenes) and cost, and the cost of the most expensive measured setting of the "
-           "family.", "",
+           "family (each precomputation was timed once, so a load spike there inflates this column; "
+           "scripts/auto_settings_check.py re-times the choice and the most expensive setting side by side).", "",
            "| Scene | Orders | Tolerance | Chosen | Measured error | Cost [ms] | Most expensive [ms] | Speed-up |",
            "|---|---:|---|---|---:|---:|---:|---:|"]
     for a in summary["auto"]:
@@ -715,6 +716,7 @@ def _trade_plot(summary: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     fig, axes = plt.subplots(1, 2, figsize=(13, 5.5))
     for ax, fam in zip(axes, ("single", "multiple")):
@@ -739,6 +741,7 @@ def _trade_plot(summary: dict, path: Path) -> None:
         ax.axhline(1.0, color="r", lw=0.8, ls="--", label="ΔE = 1")
         ax.set_xscale("log")
         ax.set_yscale("log")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel("process CPU time per image incl. precomputation [ms]")
         ax.set_ylabel("mean ΔE (CIE 1976) vs converged reference")
         ax.set_title(f"{fam} scattering", fontsize=10)
