@@ -247,7 +247,7 @@ def _report(args, grid, settings, methods, radiance, columns, cpu, cpu_total) ->
         "Every method is run on every atmosphere, and for each atmosphere on every geometry, in float64 and float32:",
         "",
         f"- observer altitude: {', '.join(a for a, _ in grid.altitudes)} (Earth: bottom 6360 km, top 6420 km; space = 120 km up);",
-        f"- sun zenith: {', '.join(f'{z:g}' for z in grid.sun_zenith_deg)} deg (90.27: the disc's centre 0.27 deg below the horizon, half the disc seen);",
+        f"- sun zenith: {', '.join(f'{z:g}' for z in grid.sun_zenith_deg)} deg (90.27: the disc, radius 0.268 deg, just below the ground's horizon and partly seen from a few metres up);",
         "- view cosine mu: 1, +-1e-3, +-1e-6, 0, -1 and, for raised observers, the ground's horizon mu_h and mu_h +- 1e-6; "
         "each towards and away from the sun's azimuth, plus the view straight at the sun (scattering angle 0, nu = 1);",
         f"- scale height H (both layers): {', '.join(f'{h:g}' for h in grid.scale_heights)} m;",
