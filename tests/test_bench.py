@@ -260,3 +260,23 @@ def test_bench_flags_refused():
     with contextlib.redirect_stderr(se), contextlib.redirect_stdout(io.StringIO()):
         rc = main(["bench", "--study", "integrators", "--frontier-out", "x.json"])
     assert rc == 2 and "--frontier-out needs --study trade" in se.getvalue()
+
+
+@pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="needs CUDA")
+def test_trade_study_on_cuda_matches_cpu_errors(tmp_path):
+    """A tiny trade study on CUDA: same errors as on the CPU (float32 rounding), CUDA peak memory reported."""
+    import contextlib
+    import dataclasses
+    import io
+
+    plan = dataclasses.replace(bench_trade.QUICK_TRADE_PLAN, size=8, single_methods=("gauss:samples=8", "taylor"),
+                               hillaire_luts=(), bruneton_sizes=())
+    runs = {}
+    for dev in ("cpu", "cuda"):
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            runs[dev] = bench_trade.run_trade_study(tmp_path / dev, device=dev, plan=plan, as_json=True)
+    for a, b in zip(runs["cpu"]["table"], runs["cuda"]["table"]):
+        assert a["id"] == b["id"]
+        assert b["mean_delta_e"] == pytest.approx(a["mean_delta_e"], rel=1e-2, abs=1e-3)
+        assert math.isfinite(b["peak_mib"]) and b["peak_mib"] >= 0
+    assert runs["cuda"]["machine"]["device"].startswith("cuda") and "gpu" in runs["cuda"]["machine"]
