@@ -23,8 +23,8 @@ Bruneton tables larger than any row's, with more orders (``TradePlan.reference_t
 A reference check at half the samples and smaller tables bounds the references' own error.
 Single-scattering rows are compared with the single-scattering reference (and, in an extra
 column, with the multiple one: the error of neglecting orders >= 2); multiple-scattering
-rows with the multiple one. The atmosphere is ``earth`` without ozone, because the direct
-single-scattering renderer has none while the tables do (docs/hillaire.md).
+rows with the multiple one. The atmosphere is ``earth`` without ozone, so that every method
+and both references integrate the same two exponential layers.
 
 Outputs (atomic writes): ``trade.md`` (Gałaj 2021 Table 3 layout, one row per setting with
 errors averaged over the scenes), ``trade.csv`` (one line per setting and scene),
@@ -136,7 +136,7 @@ FULL_TRADE_PLAN = TradePlan(
     bruneton_orders=(2, 3, 4),
     float64_methods=("trapezoid:samples=16", "gauss:samples=4", "gauss:samples=8", "gauss:samples=16", "taylor", "chapman"),
 )
-"""``skyfit bench --study trade``: 40 x 40 fisheye (1 245 directions), 8 wavelengths, 8 scenes."""
+"""``skyfit bench --study trade``: 40 x 40 fisheye (1 264 directions), 8 wavelengths, 8 scenes."""
 
 QUICK_TRADE_PLAN = TradePlan(
     size=12,
