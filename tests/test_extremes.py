@@ -28,6 +28,7 @@ REFUSALS = {
     "height_fog": r"^ValueError: height_fog: flat-Earth curvature fraction",
     "chapman": r"^ValueError: chapman: (X = r/H|a segment dips)",
     "bruneton": r"^ValueError: sun zenith cosine .* below the tables' mu_s_min",
+    "taylor": r"^ValueError: taylor: scale height H = .* is below its regime",
 }
 
 
@@ -67,7 +68,15 @@ def _assert_stable(name: str, cells: dict, grid: S.Grid):
 def test_single_scattering_finite_or_refused_on_the_coarse_grid(name):
     cells = S.radiance_scene(name, lambda atm: S.single_renderer(name, S.FAST_SETTINGS.get(name, {}), atm, view_samples=8), S.COARSE)
     _assert_stable(name, cells, S.COARSE)
-    if name != "height_fog":  # the flat fog refuses Earth-scale view rays; every other method accepts all
+    if name == "taylor":  # refuses exactly the atmospheres with a scale height below 1 km
+        from skyfit.transmittance.taylor import TAYLOR_MIN_SCALE_HEIGHT
+
+        h_cells = [(label, t) for (_, axis, label), t in cells.items() if axis == "H"]
+        assert h_cells
+        for label, t in h_cells:  # labels "10 m", "100000 m"
+            small = float(label.split()[0]) < TAYLOR_MIN_SCALE_HEIGHT
+            assert t.refused == (t.rays if small else 0), (label, t.refused, t.rays)
+    elif name != "height_fog":  # the flat fog refuses Earth-scale view rays; every other method accepts all
         assert all(t.refused == 0 for t in cells.values())
 
 
@@ -160,19 +169,29 @@ def test_height_fog_accepts_only_segments_within_its_documented_error(reference_
 
 
 def test_taylor_is_exact_for_vertical_rays_at_every_scale_height(reference_cache):
-    """Gałaj 2021 eq. 17 is exact where h is linear in t (vertical rays), from 10 m to 100 km."""
+    """Gałaj 2021 eq. 17 is exact where h is linear in t (vertical rays), from 10 m to 100 km; below 1 km
+    (where grazing rays are off by > 10x) the integrator refuses, so the formula is checked directly."""
+    from skyfit.transmittance.taylor import TAYLOR_MIN_SCALE_HEIGHT
     grid = S.Grid(altitudes=(("ground", 0.0), ("10 km", 1e4)), sun_zenith_deg=(0.0,), horizon_views=False)
     atm = S.base_atmosphere()
     integ = make_integrator("taylor")
     from skyfit.reference import column_quad
+    from skyfit.transmittance.taylor import taylor_column
 
     for H in S.SCALE_HEIGHTS_M:
         for axis, label, r, mu, L in S.column_segments(grid, atm):
             if abs(mu) != 1.0:
                 continue
-            col = float(integ.column(torch.tensor([r], dtype=torch.float64), torch.tensor([mu], dtype=torch.float64),
-                                     torch.tensor([L], dtype=torch.float64), torch.tensor([H], dtype=torch.float64),
-                                     atm.bottom_radius, atm.top_radius)[0, 0])
+            args = (torch.tensor([r], dtype=torch.float64), torch.tensor([mu], dtype=torch.float64),
+                    torch.tensor([L], dtype=torch.float64), torch.tensor([H], dtype=torch.float64), atm.bottom_radius,
+                    atm.top_radius)
+            if H < TAYLOR_MIN_SCALE_HEIGHT:
+                with pytest.raises(ValueError, match=REFUSALS["taylor"][len("^ValueError: "):]):
+                    integ.column(*args)
+                col = float(taylor_column(*args, torch.tensor(0.45, dtype=torch.float64),
+                                          torch.tensor(0.45, dtype=torch.float64))[0, 0])
+            else:
+                col = float(integ.column(*args)[0, 0])
             ref = column_quad(r, mu, L, H, atm.bottom_radius)
             assert col == pytest.approx(ref, rel=1e-9, abs=1e-3), (label, H)
 

@@ -46,7 +46,8 @@ FAST_SETTINGS = {
     "spline": {"height_points": 16, "distance_points": 8},
 }
 # Documented regime refusals (module docstrings), matched on their message.
-REGIME_REFUSAL = {"chapman": r"chapman: (a segment dips|X = r/H)", "height_fog": r"height_fog: flat-Earth curvature fraction"}
+REGIME_REFUSAL = {"chapman": r"chapman: (a segment dips|X = r/H)", "height_fog": r"height_fog: flat-Earth curvature fraction",
+                  "taylor": r"taylor: scale height H = .* is below its regime"}
 
 HYPOTHESIS = settings(
     max_examples=EXAMPLES,
