@@ -8,6 +8,7 @@ Every row is what the CLI does (``run_fit`` / ``run_evaluate`` are ``skyfit fit`
 
 Usage (results are cached per stage in --work; rerun to resume):
 
+    .venv/bin/python scripts/kider_tables.py --stage config    # the config's atmosphere, no fit
     .venv/bin/python scripts/kider_tables.py --stage fits      # 15 per-capture fits
     .venv/bin/python scripts/kider_tables.py --stage joint     # one joint fit of the day
     .venv/bin/python scripts/kider_tables.py --stage cross --sources 12.00,09.30,13.30
@@ -65,6 +66,27 @@ def stage_fits(work: Path, day: Path, only: list[str] | None) -> None:
                           "free": {k: res["parameters"][k] for k in res["free"]}}), flush=True)
 
 
+def stage_config(work: Path, day: Path) -> None:
+    """The config's atmosphere as is (no fit, exposure 1, no offsets) with the fit's renderer: RMSE per capture."""
+    from skyfit.fit.model import FitProblem
+    from skyfit.fit.parameters import Parameterisation
+    from skyfit.fit.run import _base_atmosphere, _load, _model, fit_settings, make_loss, model_wavelengths
+
+    cfg = _cfg()
+    s = fit_settings(cfg.get("fit"))
+    out = {}
+    for cap in _captures(day):
+        obs = _load([cap], s, None, None)
+        lam = model_wavelengths(obs, s.wavelengths)
+        base, dist = _base_atmosphere(cfg, lam, obs, torch.float64)
+        param = Parameterisation(base, [])
+        problem = FitProblem(param, _model(s), obs, make_loss(s.loss), base_sun_distance_au=dist)
+        m = problem.metrics(param.initial_vector())
+        out[_short(cap)] = {"rmse": m["rmse"], "delta_e": m["delta_e"]}
+        print(_short(cap), round(m["rmse"], 3), flush=True)
+    (work / "config_scores.json").write_text(json.dumps(out, indent=1))
+
+
 def stage_joint(work: Path, day: Path) -> None:
     from skyfit.fit.run import run_fit
 
@@ -101,6 +123,44 @@ def stage_cross(work: Path, day: Path, sources: list[str], refit: bool) -> None:
             print(src, name, "refit" if refit else "as is", round(ev["rmse"], 3), flush=True)
 
 
+def _summary(work: Path, caps: list[str], fits: dict) -> list[str]:
+    """Our numbers beside the issue's targets, the independent reference model's and the published ones."""
+    def load(name):
+        p = work / name
+        return json.loads(p.read_text()) if p.exists() else None
+
+    rows = []
+    conf = load("config_scores.json")
+    if conf:
+        v = [x["rmse"] for x in conf.values()]
+        rows.append(("config's atmosphere as is (no fit)", f"{np.mean(v):.2f} ({np.min(v):.1f}-{np.max(v):.1f})",
+                     "15.0 (fixed Bruneton-evaluation constants)", "-"))
+    if fits:
+        v = [r["metrics"]["rmse"] for r in fits.values()]
+        rows.append(("(a) per-capture fit", f"{np.mean(v):.2f} ({np.min(v):.1f}-{np.max(v):.1f})", "7.8 (5.0-11.4)",
+                     "mean <= 7.0, worst <= 10"))
+    j = load("joint.json")
+    if j and fits:
+        v = [p["rmse"] for p in j["metrics"]["per_observation"]]
+        own = np.mean([r["metrics"]["rmse"] for r in fits.values()])
+        rows.append(("(b) one joint fit of the day", f"{np.mean(v):.2f} ({np.min(v):.1f}-{np.max(v):.1f}); "
+                     f"{np.mean(v) - own:+.2f} vs (a)", "-", "within 1.5 of (a)"))
+    for mode, ref, target in (("asis", "16.0 (computed sun)", "<= 14"), ("refit", "10.4 (sun azimuth re-estimated)", "<= 9.5")):
+        files = sorted(work.glob(f"cross_*_{mode}.json"))
+        if files:
+            means = [np.mean([x["rmse"] for x in json.loads(f.read_text()).values()]) for f in files]
+            label = "as is" if mode == "asis" else "--refit-nuisance"
+            rows.append((f"(c) fit one, predict the others, {label}",
+                         f"{np.mean(means):.2f} (mean over {len(files)} sources; per source {np.min(means):.1f}-{np.max(means):.1f})",
+                         ref, target))
+    if not rows:
+        return []
+    out = ["## Summary", "", "| | skyfit | independent reference model | target (issue 5) |", "|---|---|---|---|"]
+    out += [f"| {a} | {b} | {c} | {d} |" for a, b, c, d in rows]
+    out += ["", f"Published fixed-parameter models on these captures: {PUBLISHED}.", ""]
+    return out
+
+
 def stage_report(work: Path, day: Path) -> str:
     caps = [_short(c) for c in _captures(day)]
     fits = {c: json.loads((work / f"fit_{c}.json").read_text()) for c in caps if (work / f"fit_{c}.json").exists()}
@@ -109,6 +169,7 @@ def stage_report(work: Path, day: Path) -> str:
              f"(config `configs/kider.yaml`; machine: {platform.processor() or platform.machine()}, 1 torch thread, "
              "shared 2-core CPU). Score: RMSE over the valid samples and the 36 bands of 10 nm in 360-720 nm, "
              f"mW/(m^2 sr nm). Published fixed-parameter models: {PUBLISHED}.", ""]
+    lines += _summary(work, caps, fits)
     if fits:
         any_fit = next(iter(fits.values()))
         lines += [f"Model: {json.dumps(any_fit['model'] | {'wavelengths_nm': '360..710 step 10'})}; "
@@ -168,7 +229,7 @@ def stage_report(work: Path, day: Path) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--stage", choices=("fits", "joint", "cross", "report"), required=True)
+    ap.add_argument("--stage", choices=("config", "fits", "joint", "cross", "report"), required=True)
     ap.add_argument("--day", default=str(DAY))
     ap.add_argument("--work", default=str(ROOT / "docs" / "kider"))
     ap.add_argument("--only", help="fits: comma list of HH.MM")
@@ -181,6 +242,8 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     if a.stage == "fits":
         stage_fits(work, day, a.only.split(",") if a.only else None)
+    elif a.stage == "config":
+        stage_config(work, day)
     elif a.stage == "joint":
         stage_joint(work, day)
     elif a.stage == "cross":

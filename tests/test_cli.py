@@ -15,19 +15,12 @@ import pytest
 
 from skyfit.cli import main
 from skyfit.io import read_exr
+from _cli import run as _run
 
 REPO = Path(__file__).resolve().parents[1]
 FAST = ["--size", "8", "--view-samples", "4", "--wavelengths", "450:650:100"]
 
 
-def _run(argv, capsys):
-    """main() in-process -> (exit status, stdout, stderr); argparse errors exit via SystemExit."""
-    try:
-        rc = main([str(a) for a in argv])
-    except SystemExit as e:
-        rc = e.code
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 def _all_files(folder: Path) -> list[str]:

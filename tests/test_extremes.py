@@ -32,14 +32,6 @@ REFUSALS = {
 }
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _expected_rays(grid: S.Grid) -> int:
     atm = S.base_atmosphere()
     return len(S.atmosphere_cases(grid)) * sum(g.r.numel() for g in S.ray_groups(grid, atm))

@@ -17,27 +17,13 @@ import torch
 
 from skyfit.cli import main
 from skyfit.io import read_exr, write_exr
+from _cli import run as _run
 
 KIDER = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kider2014" / "2013-05-27" / "2013-05-27___09.30.00"
 FAST = ["--integrator", "gauss:samples=8", "--view-samples", "4", "--rule", "trapezoid", "--starts", "1", "--max-iter", "30"]
 TRUE_G = 0.7
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
-def _run(argv, capsys):
-    try:
-        rc = main([str(a) for a in argv])
-    except SystemExit as e:
-        rc = e.code
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 def _files(folder: Path) -> list[str]:

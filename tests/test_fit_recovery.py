@@ -27,16 +27,6 @@ VIEW = 16
 FREE = ["mie_beta_550", "mie_scale_height", "mie_g", "rayleigh_scale", "exposure"]
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small tensors: intra-op threads only add synchronisation (70 s instead of 5 s of CPU on a busy 2-core
-    machine, measured); restore the caller's setting afterwards."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _integrator():
     return make_integrator("gauss", samples=16)
 

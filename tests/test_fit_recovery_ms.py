@@ -28,14 +28,6 @@ LAM = np.linspace(420.0, 680.0, 6)
 FREE = ["mie_beta_550", "mie_scale_height", "mie_g", "rayleigh_scale", "ground_albedo"]
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _sky(base: str, truth: tuple, albedo: float, sun: tuple[float, float], size: int = 48, seed: int = 0) -> Observation:
     cfg = _truth_config(base, *truth)
     cfg["ground"] = {"albedo": albedo}

@@ -20,14 +20,6 @@ BRUNETON = TableSizes(scattering_r=8, scattering_mu=32, scattering_mu_s=8, scatt
 GAUSS = make_integrator("gauss", samples=16)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(scope="module")
 def earth():
     # Without ozone, as measured in docs/hillaire.md (both methods include it consistently: tests/test_ozone.py).

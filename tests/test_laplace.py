@@ -22,14 +22,6 @@ from skyfit.transmittance import make_integrator
 from test_sample import LAM, _config, tiny_observation
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _problem(free, obs, integrator="chapman"):
     base = atmosphere_from_config(_config(), LAM)
     param = Parameterisation(base, free)

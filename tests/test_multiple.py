@@ -39,17 +39,6 @@ SMALL = TableSizes(
 )
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    """One intra-op thread for this module (restored after): the precomputations are many
-    small elementwise passes, which run several times slower when `make test`'s two xdist
-    workers each spawn two threads on two cores."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _dirs(view_zenith_deg, rel_azimuth_deg, sun_zenith_deg):
     """(mu, mu_s, nu) for view zenith / azimuth relative to the sun (degrees), broadcast."""
     v = torch.deg2rad(torch.as_tensor(view_zenith_deg, dtype=F64))

@@ -39,14 +39,6 @@ R_TOP = 6_420_000.0
 LAYER = (10_000.0, 25_000.0, 40_000.0)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 # ------------------------------------------------------------------------------------------
 # The column against scipy quad
 

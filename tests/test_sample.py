@@ -28,19 +28,12 @@ from skyfit.fit import FitOptions, FitProblem, Observation, Parameterisation, Sk
 from skyfit.fit.batched import BatchedLikelihood, per_walker_loglike
 from skyfit.fit.sample import (DEFAULT_PRIORS, LogPosterior, SampleError, make_priors, read_checkpoint, sample_posterior)
 from skyfit.transmittance import make_integrator
+from _cli import run as _cli
 
 LAM = np.array([450.0, 550.0, 650.0])
 TRUTH = {"rayleigh_scale": 1.05, "mie_beta_550": 2e-5, "mie_scale_height": 1500.0, "mie_g": 0.75}
 FREE = ["mie_beta_550", "mie_scale_height", "mie_g", "rayleigh_scale", "exposure"]
 HERE = Path(__file__).resolve().parent
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def _config() -> dict:
@@ -210,13 +203,6 @@ def test_sigkill_mid_run_then_resume_gives_the_uninterrupted_chain(tmp_path):
 
 
 # -- command line --------------------------------------------------------------------------------
-def _cli(argv, capsys):
-    try:
-        rc = main([str(a) for a in argv])
-    except SystemExit as e:
-        rc = e.code
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 @pytest.fixture(scope="module")

@@ -24,18 +24,11 @@ from skyfit.fit.parameters import FitError
 from skyfit.fit.select import RUNGS, Ladder, gaussian_nll, heldout_split, log_sigma_sum
 from skyfit.render.sky import render_vectors
 from skyfit.transmittance import make_integrator
+from _cli import run as _run
 
 LAM = np.linspace(420.0, 680.0, 6)
 VIEW = 8
 N_DIRS = 240
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def _cfg(mie: bool = True, ozone: bool = True, beta_550: float = 2.0e-5) -> dict:
@@ -172,15 +165,6 @@ def test_multiple_scattering_dropped_for_single_scattering_noon_data_kept_at_twi
 
 
 # -- skyfit fit --select ------------------------------------------------------------------------
-def _run(argv, capsys):
-    from skyfit.cli import main
-
-    try:
-        rc = main([str(a) for a in argv])
-    except SystemExit as e:
-        rc = e.code
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 def test_cli_select_writes_the_ladder_and_a_result_that_evaluate_rebuilds(tmp_path, capsys):

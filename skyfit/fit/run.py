@@ -183,10 +183,10 @@ def model_wavelengths(observations: Sequence[Observation], wavelengths: str | No
 
 
 def _base_atmosphere(config: dict, lam: np.ndarray, observations: Sequence[Observation], dtype):
-    """Base atmosphere from the config (without its ``fit`` section) and its Earth-Sun distance [AU]."""
+    """Base atmosphere from the config (without its ``fit`` and ``sample`` sections) and its Earth-Sun distance [AU]."""
     from ..atmosphere import atmosphere_from_config
 
-    cfg = {k: v for k, v in copy.deepcopy(config).items() if k != "fit"}
+    cfg = {k: v for k, v in copy.deepcopy(config).items() if k not in ("fit", "sample")}
     sun = cfg.setdefault("sun", {}) or {}
     cfg["sun"] = sun
     bands = {o.band_nm for o in observations if o.kind == "spectral" and o.band_nm is not None}
@@ -277,7 +277,6 @@ def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overri
     observations = _load(data, s, kider_site, s.max_samples)
     if s.accuracy:  # the cheapest measured renderer setting meeting it, for these observations' scenes
         s, model = _resolve_accuracy(s, observations)
-    kinds = {o.kind for o in observations}
     free = list(s.free) if s.free is not None else list(DEFAULT_FREE) + (
         ["sun_azimuth_offset"] if any("ring" in o.metadata for o in observations) else [])
     per = s.per_observation
@@ -290,26 +289,37 @@ def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overri
     options = FitOptions(starts=s.starts, seed=s.seed, adam_steps=s.adam_steps, max_iter=s.max_iter,
                          grad_tol=s.grad_tol, rel_tol=s.rel_tol, progress=progress)
     res = fit(problem, options)
+    return write_result(problem, res, out, command="fit", settings=dataclasses.asdict(s), config=config,
+                        config_source=config_source, base_dist=base_dist, dtype=s.dtype, t0=t0, laplace=laplace,
+                        plots=plots)
+
+
+def write_result(problem: FitProblem, res, out: Path, *, command: str, settings: dict, config: dict,
+                 config_source: str, base_dist: float, dtype: str, t0: float, laplace: bool, plots: bool,
+                 extra: dict | None = None) -> dict:
+    """RESULT.json of a finished fit (CONTRACT.md), with the Laplace covariance and plots when asked; atomic."""
+    param, model = problem.param, problem.model
     metrics = problem.metrics(res.x)
     phys = param.to_physical(res.x)
     result = {
         "skyfit_result": RESULT_VERSION,
-        "command": "fit",
+        "command": command,
         "parameters": res.parameters,
         "units": param.units(),
         "derived": param.derived(phys),
         "free": res.free,
-        "per_observation": [n for n in param.per_observation],
+        "per_observation": list(param.per_observation),
         "fitted_vector": {n: float(v) for n, v in zip(param.names, res.x.tolist())},
         "integrator": {**model.integrator.settings(), **model.settings()},
-        "model": {**model.settings(), "wavelengths_nm": lam.tolist(), "base_sun_distance_au": base_dist,
-                  "dtype": s.dtype, "kinds": sorted(kinds)},
-        "loss": loss.settings(),
+        "model": {**model.settings(), "wavelengths_nm": param.base.wavelengths.cpu().tolist(), "base_sun_distance_au": base_dist,
+                  "dtype": dtype, "kinds": sorted({o.kind for o in problem.observations})},
+        "loss": problem.loss.settings(),
         "metrics": metrics,
-        "data": [o.summary() for o in observations],
+        "data": [o.summary() for o in problem.observations],
         "convergence": {**res.convergence, "starts": res.starts},
-        "settings": dataclasses.asdict(s),
-        "config": {k: v for k, v in config.items() if k != "fit"},
+        **(extra or {}),
+        "settings": settings,
+        "config": {k: v for k, v in config.items() if k not in ("fit", "sample")},
         "config_source": config_source,
         "seconds": time.perf_counter() - t0,
     }
@@ -320,9 +330,9 @@ def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overri
     if plots:
         with torch.no_grad():
             preds = problem.predict(res.x)
-        result["plots"] = plot_all(problem.observations, preds, out.parent, out.stem)
+        result["plots"] = plot_all(problem.observations, preds, Path(out).parent, Path(out).stem)
     result["seconds"] = time.perf_counter() - t0
-    write_text_atomic(out, dumps(result))
+    write_text_atomic(Path(out), dumps(result))
     return result
 
 

@@ -771,6 +771,8 @@ class SampleSettings:
         predictive_draws: posterior draws for the predictive spread image.
         init_scale: initial ball radius in units of the Laplace sigma.
         batched: true / false / "auto" (see :class:`LogPosterior`).
+        max_samples: images: sample the posterior of every k-th pixel so that at most this many
+            remain (None: the fit's pixels); cheaper, and wider than the full data's posterior.
     """
 
     walkers: int = 32
@@ -785,6 +787,7 @@ class SampleSettings:
     predictive_draws: int = 64
     init_scale: float = 0.1
     batched: bool | str = "auto"
+    max_samples: int | None = None
 
 
 def sample_settings(section: dict | None, overrides: dict | None = None) -> SampleSettings:
@@ -801,17 +804,20 @@ def sample_settings(section: dict | None, overrides: dict | None = None) -> Samp
 
 
 def build_problem(data, config: dict, init: dict, init_path, kider_site: dict | None, integrator: str | None = None,
-                  view_samples: int | None = None, rule: str | None = None, accuracy: str | None = None):
+                  view_samples: int | None = None, rule: str | None = None, accuracy: str | None = None,
+                  max_samples: int | None = None):
     """(problem, x0) for DATA with the fit settings, free set and fitted values of the RESULT.json ``init``.
 
     The masks, loss, noise model and renderer are the fit's (``init['settings']``); ``integrator``,
-    ``view_samples``, ``rule`` replace the renderer's (a cheaper sampler).
+    ``view_samples``, ``rule`` replace the renderer's (a cheaper sampler); ``max_samples`` keeps every
+    k-th image pixel (the posterior is then that subsample's: wider than the full data's).
     """
     from . import run as R
     from .parameters import NUISANCE, Parameterisation
 
     try:
-        s = R.fit_settings(init.get("settings"), {"integrator": integrator, "view_samples": view_samples, "rule": rule})
+        s = R.fit_settings(init.get("settings"), {"integrator": integrator, "view_samples": view_samples, "rule": rule,
+                                                  "max_samples": max_samples})
     except TypeError as e:
         raise SampleError(f"{init_path}: malformed fit settings ({e})") from None
     loss = R.make_loss(s.loss)
@@ -858,10 +864,10 @@ def run_sample(data, config: dict, init_path, out_dir, *, overrides: dict | None
     t0 = time.perf_counter()
     cheap = ss.integrator is not None or ss.view_samples is not None or ss.rule is not None or ss.accuracy is not None
     problem, x0 = build_problem(data, config, init, init_path, kider_site, ss.integrator, ss.view_samples, ss.rule,
-                                accuracy=ss.accuracy)
+                                accuracy=ss.accuracy, max_samples=ss.max_samples)
     final_problem = None
     if cheap:
-        final_problem, _ = build_problem(data, config, init, init_path, kider_site)
+        final_problem, _ = build_problem(data, config, init, init_path, kider_site, max_samples=ss.max_samples)
     P = problem.param.size
     if ss.walkers < 2 * P:
         raise SampleError(f"--walkers {ss.walkers} is fewer than 2 x {P} free parameters; use at least {2 * P}")

@@ -589,9 +589,8 @@ def run_select(data, config: dict, out, *, overrides: dict | None = None, config
     from pathlib import Path
 
     from .losses import make_loss
-    from .report import dumps, plot_all, write_text_atomic
-    from .run import (RESULT_VERSION, _base_atmosphere, _initial_values, _load, _model, _resolve_accuracy, fit_settings,
-                      model_wavelengths)
+    from .run import (_base_atmosphere, _initial_values, _load, _model, _resolve_accuracy, fit_settings, model_wavelengths,
+                      write_result)
 
     t0 = time.perf_counter()
     out = Path(out)
@@ -626,43 +625,10 @@ def run_select(data, config: dict, out, *, overrides: dict | None = None, config
     # the chosen model on every pixel, warm-started from its fit on the training pixels
     problem = ladder.problem(st, {n: res_train.parameters[n] for n in st.free}, observations)
     res = fit(problem, dataclasses.replace(options, starts=1, progress=progress))
-    param, chosen_model = problem.param, problem.model
-    metrics = problem.metrics(res.x)
-    phys = param.to_physical(res.x)
     settings = dataclasses.asdict(s)
     settings.update(free=list(st.free), orders=st.orders,
                     initial={k: v for k, v in (s.initial or {}).items() if k in st.free})
-    selection = strip_private(report)
-    result = {
-        "skyfit_result": RESULT_VERSION,
-        "command": "fit --select",
-        "parameters": res.parameters,
-        "units": param.units(),
-        "derived": param.derived(phys),
-        "free": res.free,
-        "per_observation": list(param.per_observation),
-        "fitted_vector": {n: float(v) for n, v in zip(param.names, res.x.tolist())},
-        "integrator": {**chosen_model.integrator.settings(), **chosen_model.settings()},
-        "model": {**chosen_model.settings(), "wavelengths_nm": lam.tolist(), "base_sun_distance_au": base_dist,
-                  "dtype": s.dtype, "kinds": sorted({o.kind for o in observations})},
-        "loss": loss.settings(),
-        "metrics": metrics,
-        "data": [o.summary() for o in observations],
-        "convergence": {**res.convergence, "starts": res.starts},
-        "selection": selection,
-        "settings": settings,
-        "config": selected_config(config, st.components()),
-        "config_source": config_source,
-        "seconds": time.perf_counter() - t0,
-    }
-    if laplace:
-        from .laplace import laplace_summary
-
-        result["laplace"] = laplace_summary(problem, res.x)
-    if plots:
-        with torch.no_grad():
-            preds = problem.predict(res.x)
-        result["plots"] = plot_all(problem.observations, preds, out.parent, out.stem)
-    result["seconds"] = time.perf_counter() - t0
-    write_text_atomic(out, dumps(result))
-    return result
+    return write_result(problem, res, out, command="fit --select", settings=settings,
+                        config=selected_config(config, st.components()), config_source=config_source,
+                        base_dist=base_dist, dtype=s.dtype, t0=t0, laplace=laplace, plots=plots,
+                        extra={"selection": strip_private(report)})
