@@ -545,18 +545,9 @@ def cmd_bench(args) -> int:
 
 def _write_json_atomic(path: Path, data: dict) -> None:
     """Write ``data`` as strict JSON (NaN refused) to a temporary file beside ``path``, then rename it."""
-    import os
-    import tempfile
+    from .io.atomic import write_text_atomic
 
-    text = json.dumps(data, indent=2, allow_nan=False) + "\n"
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_text_atomic(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
 
 
 def cmd_calibrate_integrator(args) -> int:

@@ -108,7 +108,6 @@ def laplace_summary(problem: FitProblem, x: Tensor) -> dict:
         pseudo-inverse and ``positive_definite`` is False.
     """
     t0 = time.perf_counter()
-    p = problem.param
     x = x.detach()
     H = hessian_nll(problem, x).to(torch.float64)
     if not bool(torch.isfinite(H).all()):

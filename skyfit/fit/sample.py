@@ -40,9 +40,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import sys
-import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -56,6 +54,7 @@ from .batched import BatchedLikelihood, per_walker_loglike
 from .model import FitProblem
 from .parameters import PARAMETERS, FitError
 from .report import dumps, write_text_atomic
+from ..io.atomic import atomic_path
 
 SAMPLE_VERSION = 1
 CHAIN_FILE = "chain.h5"
@@ -332,11 +331,7 @@ def write_checkpoint(path: Path, backend, meta: dict) -> None:
     import emcee
     import h5py
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         it = int(backend.iteration)
         with h5py.File(tmp, "w") as f:
             g = f.create_group("mcmc")
@@ -353,10 +348,6 @@ def write_checkpoint(path: Path, backend, meta: dict) -> None:
                     g.attrs[f"random_state_{i}"] = v
             s = f.create_group("skyfit")
             s.attrs["meta"] = json.dumps(meta)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def read_checkpoint(path: Path):

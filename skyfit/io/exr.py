@@ -6,11 +6,11 @@ renamed into place only when complete, so a failure leaves no partial file.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from .atomic import atomic_path
 
 METADATA_KEY = "skyfit"
 """EXR header attribute holding skyfit's metadata as a JSON string."""
@@ -37,19 +37,13 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray], metadata: dict 
         except (TypeError, ValueError) as e:
             raise ExrError(f"EXR metadata for {path} is not JSON-serialisable: {e}") from None
     data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.exr", dir=path.parent)
-    os.close(fd)
     try:
-        OpenEXR.File(header, data).write(tmp)
-        os.replace(tmp, path)
+        with atomic_path(path, ".tmp.exr") as tmp:
+            OpenEXR.File(header, data).write(str(tmp))
     except OSError as e:
         raise ExrError(f"cannot write EXR {path}: {e.strerror or e}") from None
     except Exception as e:  # the binding raises plain exceptions (RuntimeError, ValueError)
         raise ExrError(f"cannot write EXR {path}: {e}") from None
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
 
 

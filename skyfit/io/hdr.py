@@ -25,12 +25,12 @@ sources (src/common/color.c: fwritecolrs / freadcolrs / setcolr / colr_color).
 """
 from __future__ import annotations
 
-import os
 import re
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from .atomic import write_bytes_atomic
 
 __all__ = ["HdrError", "read_hdr", "write_hdr", "float_to_rgbe", "rgbe_to_float"]
 
@@ -292,14 +292,4 @@ def write_hdr(path, image, *, rle: bool = True, exposure: float | None = None) -
                 body += _rle_component(rgbe[y, :, c])
     else:
         body += rgbe.tobytes()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.hdr", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(header.encode("ascii"))
-            f.write(bytes(body))
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return write_bytes_atomic(path, header.encode("ascii") + bytes(body))
