@@ -75,9 +75,8 @@ def _render_truth(size: int, lam: np.ndarray, quick: bool):
     from .transmittance import make_integrator
 
     atm = atmosphere_from_config(truth_config(), lam)
-    with torch.no_grad():
-        lut = hillaire_lut(atm, size=(16, 16) if quick else (32, 32), directions=32 if quick else 64,
-                           samples=12 if quick else 20)
+    with torch.no_grad():  # the paper's LUT (the fit uses 16 x 16 texels)
+        lut = hillaire_lut(atm, size=(32, 32), directions=64, samples=20)
         img = render_fisheye(atm, FisheyeCamera(size), SUN[0], SUN[1], make_integrator("gauss", samples=32 if quick else 64),
                              orders=2, multiple="hillaire", tables=lut, view_samples=24 if quick else 48, rule="gauss")
     return atm, img

@@ -113,12 +113,18 @@ def test_fit_section_of_the_config_and_rgb_data(sky, tmp_path, capsys):
     (["fit", "{sky}", "--config", "earth", "--out", "{d}/result.txt"], "--out must name a .json file"),
     (["fit", "{sky}", "--config", "earth", "--out", "{o}", "--loss", "l1"], "unknown loss 'l1'"),
     (["fit", "{sky}", "--config", "{d}/nope.yaml", "--out", "{o}"], "config file not found: .*nope.yaml"),
-    (["fit", "{sky}", "--config", "earth", "--out", "{o}", "--orders", "2"], "orders=2: only single scattering"),
+    (["fit", "{sky}", "--config", "earth", "--out", "{o}", "--orders", "0"], "orders must be >= 1"),
+    (["fit", "{sky}", "--config", "earth", "--out", "{o}", "--free", "ozone_column,mie_g", "--orders", "2",
+      "--multiple", "bruneton", "--integrator", "gauss:samples=0"], "samples"),
     (["evaluate", "{d}/missing.json", "{sky}", "--json"], "result file not found: .*missing.json"),
+    (["fit", "{sky}", "--config", "earth", "--out", "{o}", "--min-elevation", "89.9"], "no usable pixel"),
+    (["fit", "{sky}", "--config", "{d}/g_out.yaml", "--out", "{o}"], "mie_g must lie in the open interval \\(-1, 1\\)"),
 ])
 def test_bad_input_exits_2_with_one_line_and_no_file(argv, match, sky, tmp_path, capsys):
     out_dir = tmp_path / "out"
     out_dir.mkdir()
+    (tmp_path / "g_out.yaml").write_text("fit:\n  free: [mie_g]\n  initial: {mie_g: 1.5}\n" +
+                                         (sky / "truth.yaml").read_text())
     argv = [a.format(d=tmp_path, o=out_dir / "RESULT.json", sky=sky / "sky.exr") for a in argv]
     rc, so, se = _run(argv, capsys)
     assert rc == 2

@@ -32,7 +32,8 @@ def _sky(base: str, truth: tuple, albedo: float, sun: tuple[float, float], size:
     cfg = _truth_config(base, *truth)
     cfg["ground"] = {"albedo": albedo}
     atm = atmosphere_from_config(cfg, LAM)
-    lut = hillaire_lut(atm, size=(16, 16), directions=32, samples=12,
+    d = SkyModel(make_integrator("chapman"))  # the fit's LUT defaults: data and model share the renderer
+    lut = hillaire_lut(atm, size=d.lut_size, directions=d.lut_directions, samples=d.lut_samples,
                        transmittance_sizes=TableSizes(transmittance_mu=64, transmittance_r=16))
     img = render_fisheye(atm, FisheyeCamera(size), sun[0], sun[1], make_integrator("chapman"), orders=2,
                          multiple="hillaire", tables=lut, view_samples=16, rule="gauss")

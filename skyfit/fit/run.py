@@ -50,8 +50,8 @@ class FitSettings:
     orders: int = 1
     multiple: str = "hillaire"
     lut_size: list[int] = dataclasses.field(default_factory=lambda: [16, 16])
-    lut_directions: int = 32
-    lut_samples: int = 12
+    lut_directions: int = 64
+    lut_samples: int = 20
     table_sizes: list[int] | None = None
     view_samples: int = 16
     rule: str = "gauss"
