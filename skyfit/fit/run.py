@@ -337,6 +337,9 @@ def write_result(problem: FitProblem, res, out: Path, *, command: str, settings:
 
 
 # -- evaluate -----------------------------------------------------------------------------------
+REFIT_NUISANCE = ("exposure", "sun_azimuth_offset", "sun_zenith_offset")
+"""What ``evaluate --refit-nuisance`` re-estimates on the target: the calibration scale and the
+instrument's orientation (azimuth and zenith offsets); the atmosphere stays fixed."""
 REQUIRED_RESULT_KEYS = ("parameters", "free", "integrator", "config", "model")
 
 
@@ -383,7 +386,8 @@ def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_n
 
     Without ``refit_nuisance`` the fitted exposure and offsets are used (the observation's own
     when it was among the fitted data, else their mean). With it, the atmosphere stays fixed
-    while ``exposure`` and ``sun_azimuth_offset`` are re-estimated per observation.
+    while :data:`REFIT_NUISANCE` (exposure and the sun azimuth and zenith offsets) are re-estimated
+    per observation.
     """
     res = read_result(result_path)
     try:
@@ -408,7 +412,7 @@ def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_n
         vals = [_nuisance_for(res, o, n) for o in observations]
         if all(v is not None for v in vals):
             nuis_values[n] = vals if n != "noise_scale" else vals[0]
-    free = ["exposure", "sun_azimuth_offset"] if refit_nuisance else []
+    free = list(REFIT_NUISANCE) if refit_nuisance else []
     per = [n for n in NUISANCE if n != "noise_scale"]
     param = Parameterisation(base, free, len(observations), per, {**atm_values, **nuis_values})
     problem = FitProblem(param, model, observations, loss, base_sun_distance_au=base_dist)
