@@ -207,8 +207,8 @@ def stage_report(work: Path, day: Path) -> str:
     if crosses:
         lines += ["## (c) Fit one capture, predict the others", "",
                   "`skyfit evaluate fit_SRC.json DAY/TARGET --json` as is (the source's atmosphere, exposure and "
-                  "offsets) and with `--refit-nuisance` (atmosphere fixed; exposure and sun azimuth offset "
-                  "re-estimated on the target).", "",
+                  "offsets) and with `--refit-nuisance` (atmosphere fixed; exposure and the sun azimuth and zenith "
+                  "offsets re-estimated on the target).", "",
                   "| source | mode | mean RMSE | min | max | targets |", "|---|---|---|---|---|---|"]
         for p in crosses:
             _, src, mode = p.stem.split("_")
