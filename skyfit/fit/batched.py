@@ -43,7 +43,7 @@ from ..geometry import distance_to_top, point_along_ray, safe_sqrt, sun_cosine_a
 from ..quadrature import nodes_weights
 from ..scattering.phase import mie_phase, rayleigh_phase
 from ..scattering.single import sun_ray_cosine, sun_visible_fraction, view_ray_samples
-from ..transmittance.chapman import ChapmanOpticalDepth
+from ..transmittance.chapman import ChapmanOpticalDepth, segment_geometry
 from ..transmittance.quadrature import QuadratureOpticalDepth
 from .model import FitProblem
 from .parameters import PARAMETERS
@@ -82,29 +82,15 @@ class _ChapmanPlan:
     @classmethod
     def build(cls, r: Tensor, mu: Tensor, length: Tensor, bottom_radius: float, start_shape=None) -> "_ChapmanPlan":
         rb, mub, lb = torch.broadcast_tensors(r, mu, length)
-        R = bottom_radius
-        h = rb - R
-        r_d = safe_sqrt(rb * rb + 2.0 * rb * mub * lb + lb * lb)
-        den = r_d + rb
-        den = torch.where(den > 0, den, torch.ones_like(den))
-        h_d = h + lb * (2.0 * rb * mub + lb) / den
-        up = mub >= 0
-        r_d_safe = torch.where(r_d > 0, r_d, torch.ones_like(r_d))
-        mu_d = torch.where(r_d > 0, (rb * mub + lb) / r_d_safe, mub)
-        before = (~up) & (mu_d <= 0)
-        through = (~up) & (mu_d > 0)
-        a_mu = torch.where(up, mub, -mub)
+        g = segment_geometry(rb, mub, lb, bottom_radius)
+        a_mu = torch.where(g.up, mub, -mub)
         if start_shape is not None:  # every segment of a row starts at the same point: keep one per row
-            a = tuple(t[..., :1] for t in (h, rb, a_mu))
+            a = tuple(t[..., :1] for t in (g.h, rb, a_mu))
         else:
-            a = (h, rb, a_mu)
-        b = (h_d, r_d, torch.where(before, -mu_d, mu_d))
-        t = None
-        if bool(through.any()):
-            mu_t = torch.where(through, mub, torch.zeros_like(mub))
-            r_t = rb * safe_sqrt((1.0 - mu_t) * (1.0 + mu_t))
-            h_t = (h * (rb + R) - rb * rb * mu_t * mu_t) / (r_t + R)
-            t = (h_t, r_t)
+            a = (g.h, rb, a_mu)
+        b = (g.h_d, g.r_d, torch.where(g.before, -g.mu_d, g.mu_d))
+        t = (g.h_t, g.r_t) if bool(g.through.any()) else None
+        up, before = g.up, g.before
         return cls(a, b, t, up, before, bool(up.all()))
 
     def column(self, H: Tensor) -> Tensor:

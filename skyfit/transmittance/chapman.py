@@ -55,6 +55,7 @@ Outside it the class raises ValueError.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -83,6 +84,44 @@ def chapman_column_up(altitude: Tensor, r: Tensor, mu: Tensor, scale_heights: Te
     return H * torch.exp(-altitude / H) * math.sqrt(math.pi / 2.0) * torch.sqrt(X) * torch.special.erfcx(torch.sqrt(X / 2.0) * mu)
 
 
+class SegmentGeometry(NamedTuple):
+    """Where a straight segment starts, ends and (if it passes one) has its tangent point."""
+
+    h: Tensor  # start altitude r - R [m]
+    r_d: Tensor  # end radius [m]
+    h_d: Tensor  # end altitude [m]
+    mu_d: Tensor  # zenith cosine of the ray at the end [1]
+    up: Tensor  # the segment starts upwards (mu >= 0)
+    before: Tensor  # downwards and ends before the tangent point
+    through: Tensor  # downwards and passes the tangent point
+    r_t: Tensor  # radius of the tangent point (meaningful where ``through``) [m]
+    h_t: Tensor  # its altitude [m]
+
+
+def segment_geometry(r: Tensor, mu: Tensor, length: Tensor, bottom_radius: float) -> SegmentGeometry:
+    """The end and tangent points of segments (r, mu, length), shapes broadcast, without cancellation.
+
+    End point: r_d - r = (2 r mu L + L^2) / (r_d + r) keeps the altitude accurate in float32,
+    where r_d itself is only known to ~0.5 m. Tangent point (only where the segment passes it;
+    elsewhere it may lie inside the planet): r_t - R = ((r - R)(r + R) - r^2 mu^2) / (r_t + R).
+    """
+    R = bottom_radius
+    h = r - R
+    r_d = safe_sqrt(r * r + 2.0 * r * mu * length + length * length)
+    den = r_d + r
+    den = torch.where(den > 0, den, torch.ones_like(den))
+    h_d = h + length * (2.0 * r * mu + length) / den
+    up = mu >= 0
+    r_d_safe = torch.where(r_d > 0, r_d, torch.ones_like(r_d))
+    mu_d = torch.where(r_d > 0, (r * mu + length) / r_d_safe, mu)
+    before = (~up) & (mu_d <= 0)
+    through = (~up) & (mu_d > 0)
+    mu_t = torch.where(through, mu, torch.zeros_like(mu))
+    r_t = r * safe_sqrt((1.0 - mu_t) * (1.0 + mu_t))
+    h_t = (h * (r + R) - r * r * mu_t * mu_t) / (r_t + R)
+    return SegmentGeometry(h, r_d, h_d, mu_d, up, before, through, r_t, h_t)
+
+
 def chapman_segment_column(r: Tensor, mu: Tensor, length: Tensor, scale_heights: Tensor, bottom_radius: float) -> Tensor:
     """Column of a segment as a difference of Chapman columns (see the module docstring).
 
@@ -96,29 +135,12 @@ def chapman_segment_column(r: Tensor, mu: Tensor, length: Tensor, scale_heights:
         shape (..., K). [m]
     """
     r, mu, length = (t.unsqueeze(-1) for t in torch.broadcast_tensors(r, mu, length))
-    R = bottom_radius
-    h = r - R
-    # End point: r_d - r = (2 r mu L + L^2) / (r_d + r) keeps the altitude accurate in float32,
-    # where r_d itself is only known to ~0.5 m.
-    r_d = safe_sqrt(r * r + 2.0 * r * mu * length + length * length)
-    den = r_d + r
-    den = torch.where(den > 0, den, torch.ones_like(den))
-    h_d = h + length * (2.0 * r * mu + length) / den
-    up = mu >= 0
-    r_d_safe = torch.where(r_d > 0, r_d, torch.ones_like(r_d))
-    mu_d = torch.where(r_d > 0, (r * mu + length) / r_d_safe, mu)
-    before = (~up) & (mu_d <= 0)
-    through = (~up) & (mu_d > 0)
+    g = segment_geometry(r, mu, length, bottom_radius)
     # Signed so that each branch has the derivative of its own formula at mu = 0 and mu_d = 0.
-    a = chapman_column_up(h, r, torch.where(up, mu, -mu), scale_heights)
-    b = chapman_column_up(h_d, r_d, torch.where(before, -mu_d, mu_d), scale_heights)
-    # Tangent point only where the segment passes it (elsewhere it may lie inside the planet):
-    # r_t - R = ((r - R)(r + R) - r^2 mu^2) / (r_t + R), without cancellation near the ground.
-    mu_t = torch.where(through, mu, torch.zeros_like(mu))
-    r_t = r * safe_sqrt((1.0 - mu_t) * (1.0 + mu_t))
-    h_t = (h * (r + R) - r * r * mu_t * mu_t) / (r_t + R)
-    t = chapman_column_up(h_t, r_t, torch.zeros_like(r_t), scale_heights)
-    return torch.where(up, a - b, torch.where(before, b - a, 2.0 * t - a - b))
+    a = chapman_column_up(g.h, r, torch.where(g.up, mu, -mu), scale_heights)
+    b = chapman_column_up(g.h_d, g.r_d, torch.where(g.before, -g.mu_d, g.mu_d), scale_heights)
+    t = chapman_column_up(g.h_t, g.r_t, torch.zeros_like(g.r_t), scale_heights)
+    return torch.where(g.up, a - b, torch.where(g.before, b - a, 2.0 * t - a - b))
 
 
 class ChapmanOpticalDepth(OpticalDepthIntegrator):
