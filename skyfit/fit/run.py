@@ -241,6 +241,16 @@ def _model_from_result(res: dict) -> SkyModel:
                     ground=bool(m.get("ground", True)), **kw)
 
 
+def check_out_and_config(out: str | Path, config, config_source: str) -> Path:
+    """FitError unless ``out`` names a .json file and ``config`` is a mapping; ``out`` as a Path."""
+    out = Path(out)
+    if out.suffix.lower() != ".json":
+        raise FitError(f"--out must name a .json file, got {out}")
+    if not isinstance(config, dict):
+        raise FitError(f"config {config_source}: must be a mapping")
+    return out
+
+
 def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overrides: dict | None = None,
             config_source: str = "", kider_site: dict | None = None, plots: bool = True, progress: bool = False,
             laplace: bool = False, select: bool = False) -> dict:
@@ -261,11 +271,7 @@ def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overri
             RESULT.json then holds the chosen model and ``selection``.
     """
     t0 = time.perf_counter()
-    out = Path(out)
-    if out.suffix.lower() != ".json":
-        raise FitError(f"--out must name a .json file, got {out}")
-    if not isinstance(config, dict):
-        raise FitError(f"config {config_source}: must be a mapping")
+    out = check_out_and_config(out, config, config_source)
     if select:  # the model ladder (skyfit.fit.select) chooses the atmosphere's components
         from .select import run_select
 

@@ -586,18 +586,12 @@ def run_select(data, config: dict, out, *, overrides: dict | None = None, config
     (exposure, sun offsets) are used: the ladder frees the atmosphere's. The config's ``orders``
     is ignored (the ``multiple`` rung decides it); its ``multiple`` method and LUT sizes are kept.
     """
-    from pathlib import Path
-
     from .losses import make_loss
-    from .run import (_base_atmosphere, _initial_values, _load, _model, _resolve_accuracy, fit_settings, model_wavelengths,
-                      write_result)
+    from .run import (_base_atmosphere, _initial_values, _load, _model, _resolve_accuracy, check_out_and_config,
+                      fit_settings, model_wavelengths, write_result)
 
     t0 = time.perf_counter()
-    out = Path(out)
-    if out.suffix.lower() != ".json":
-        raise FitError(f"--out must name a .json file, got {out}")
-    if not isinstance(config, dict):
-        raise FitError(f"config {config_source}: must be a mapping")
+    out = check_out_and_config(out, config, config_source)
     s = fit_settings(config.get("fit"), overrides)
     loss = make_loss(s.loss)
     model = dataclasses.replace(_model(s), orders=1)
