@@ -83,16 +83,15 @@ class SkyModel:
 
     def tables(self, atm: Atmosphere):
         """Multiple-scattering tables for ``atm`` (None for single scattering)."""
+        from ..scattering.bruneton_tables import TableSizes
+
         if self.orders == 1:
             return None
         if self.multiple == "hillaire":
             from ..scattering.hillaire import hillaire_lut
 
-            from ..scattering.bruneton_tables import TableSizes
-
             return hillaire_lut(atm, size=self.lut_size, directions=self.lut_directions, samples=self.lut_samples,
                                 transmittance_sizes=TableSizes(transmittance_mu=64, transmittance_r=16))
-        from ..scattering.bruneton_tables import TableSizes
         from ..scattering.multiple import precompute
 
         sizes = TableSizes(*(self.table_sizes or self.REDUCED_TABLES))
@@ -110,17 +109,12 @@ class SkyModel:
 
         if self.orders > 1:
             tables = self.tables(atm) if tables is None else tables
-            if self.multiple == "hillaire":
 
-                def render_ms(directions: Tensor, sun: Tensor) -> Tensor:
-                    return render_vectors(atm, directions, sun, self.integrator, altitude_m, self.orders, tables=tables,
-                                          multiple="hillaire", view_samples=self.view_samples, rule=self.rule,
-                                          ground=self.ground)
-            else:
-
-                def render_ms(directions: Tensor, sun: Tensor) -> Tensor:
-                    return render_vectors(atm, directions, sun, self.integrator, altitude_m, self.orders, tables=tables,
-                                          multiple="bruneton", ground=self.ground)
+            def render_ms(directions: Tensor, sun: Tensor) -> Tensor:
+                # Bruneton's lookup ignores view_samples and rule (render_vectors passes it only ground).
+                return render_vectors(atm, directions, sun, self.integrator, altitude_m, self.orders, tables=tables,
+                                      multiple=self.multiple, view_samples=self.view_samples, rule=self.rule,
+                                      ground=self.ground)
 
             return render_ms
         column_fn = self.integrator.prepare(atm.scale_heights, atm.bottom_radius, atm.top_radius)
@@ -202,7 +196,7 @@ class FitProblem:
         """Model spectral radiance for every used sample of each observation (N_i, W), no exposure."""
         atm = self.param.atmosphere(phys) if atm is None else atm
         out, renderers = [], {}
-        tables = self.model.tables(atm) if len({o.altitude_m for o in self.observations}) > 1 else None
+        tables = self.model.tables(atm)  # once per atmosphere, shared by every altitude (None: single scattering)
         for i, o in enumerate(self.observations):
             if o.altitude_m not in renderers:
                 renderers[o.altitude_m] = self.model.renderer(atm, o.altitude_m, tables)

@@ -29,6 +29,8 @@ DEFAULT_FREE = ("rayleigh_scale", "mie_beta_550", "mie_scale_height", "mie_g", "
 DEFAULT_RGB_WAVELENGTHS = "400:700:20"
 """Model grid for RGB data whose EXR header does not give the grid it was rendered on [nm]."""
 RESULT_VERSION = 1
+RUN_SECTIONS = ("fit", "sample")
+"""Config sections that set up a run rather than the atmosphere (not passed to the atmosphere loader)."""
 
 
 @dataclasses.dataclass
@@ -186,7 +188,7 @@ def _base_atmosphere(config: dict, lam: np.ndarray, observations: Sequence[Obser
     """Base atmosphere from the config (without its ``fit`` and ``sample`` sections) and its Earth-Sun distance [AU]."""
     from ..atmosphere import atmosphere_from_config
 
-    cfg = {k: v for k, v in copy.deepcopy(config).items() if k not in ("fit", "sample")}
+    cfg = {k: v for k, v in copy.deepcopy(config).items() if k not in RUN_SECTIONS}
     sun = cfg.setdefault("sun", {}) or {}
     cfg["sun"] = sun
     bands = {o.band_nm for o in observations if o.kind == "spectral" and o.band_nm is not None}
@@ -207,8 +209,8 @@ def _initial_values(s: FitSettings, observations: Sequence[Observation], free: S
 
 def _model(s: FitSettings) -> SkyModel:
     return SkyModel(_integrator(s.integrator), orders=s.orders, view_samples=s.view_samples, rule=s.rule,
-                    multiple=s.multiple, lut_size=tuple(s.lut_size), lut_directions=s.lut_directions,
-                    lut_samples=s.lut_samples, table_sizes=None if s.table_sizes is None else tuple(s.table_sizes))
+                    multiple=s.multiple, lut_size=s.lut_size, lut_directions=s.lut_directions,
+                    lut_samples=s.lut_samples, table_sizes=s.table_sizes)
 
 
 def _resolve_accuracy(s: FitSettings, observations) -> tuple[FitSettings, SkyModel]:
@@ -225,17 +227,8 @@ def _resolve_accuracy(s: FitSettings, observations) -> tuple[FitSettings, SkyMod
 
 def _model_from_result(res: dict) -> SkyModel:
     """The SkyModel a RESULT.json was fitted with (its ``integrator`` and ``model`` entries)."""
-    m = res["model"]
-    kw = {}
-    if int(m.get("orders", 1)) > 1:
-        kw = {"multiple": m.get("multiple", "hillaire")}
-        for k in ("lut_directions", "lut_samples"):
-            if k in m:
-                kw[k] = int(m[k])
-        if "lut_size" in m:
-            kw["lut_size"] = tuple(m["lut_size"])
-        if m.get("table_sizes") is not None:
-            kw["table_sizes"] = tuple(m["table_sizes"])
+    m = res["model"]  # SkyModel.settings() wrote the multiple-scattering fields only for orders > 1
+    kw = {k: m[k] for k in ("multiple", "lut_size", "lut_directions", "lut_samples", "table_sizes") if m.get(k) is not None}
     return SkyModel(_integrator(res["integrator"]), orders=int(m.get("orders", 1)),
                     view_samples=int(m.get("view_samples", 32)), rule=m.get("rule", "trapezoid"),
                     ground=bool(m.get("ground", True)), **kw)
@@ -304,6 +297,7 @@ def write_result(problem: FitProblem, res, out: Path, *, command: str, settings:
                  config_source: str, base_dist: float, dtype: str, t0: float, laplace: bool, plots: bool,
                  extra: dict | None = None) -> dict:
     """RESULT.json of a finished fit (CONTRACT.md), with the Laplace covariance and plots when asked; atomic."""
+    out = Path(out)
     param, model = problem.param, problem.model
     metrics = problem.metrics(res.x)
     phys = param.to_physical(res.x)
@@ -325,7 +319,7 @@ def write_result(problem: FitProblem, res, out: Path, *, command: str, settings:
         "convergence": {**res.convergence, "starts": res.starts},
         **(extra or {}),
         "settings": settings,
-        "config": {k: v for k, v in config.items() if k not in ("fit", "sample")},
+        "config": {k: v for k, v in config.items() if k not in RUN_SECTIONS},
         "config_source": config_source,
         "seconds": time.perf_counter() - t0,
     }
@@ -336,9 +330,9 @@ def write_result(problem: FitProblem, res, out: Path, *, command: str, settings:
     if plots:
         with torch.no_grad():
             preds = problem.predict(res.x)
-        result["plots"] = plot_all(problem.observations, preds, Path(out).parent, Path(out).stem)
+        result["plots"] = plot_all(problem.observations, preds, out.parent, out.stem)
     result["seconds"] = time.perf_counter() - t0
-    write_text_atomic(Path(out), dumps(result))
+    write_text_atomic(out, dumps(result))
     return result
 
 

@@ -561,7 +561,9 @@ def format_table(report: dict) -> str:
 def selected_config(config: dict, components: Sequence[str]) -> dict:
     """The config of the chosen model: aerosol (angstrom_beta 0) and ozone removed when the ladder dropped them,
     so that ``skyfit evaluate`` rebuilds the chosen atmosphere."""
-    cfg = copy.deepcopy({k: v for k, v in config.items() if k != "fit"})
+    from .run import RUN_SECTIONS
+
+    cfg = copy.deepcopy({k: v for k, v in config.items() if k not in RUN_SECTIONS})
     if "mie" not in components:
         mie = dict(cfg.get("mie") or {})
         mie.pop("extinction_550", None)
