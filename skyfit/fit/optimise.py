@@ -99,6 +99,12 @@ def _value_and_grad(problem: FitProblem, x: Tensor) -> tuple[float, Tensor]:
     return float(loss.detach()), g
 
 
+def _nonfinite_names(problem: FitProblem, *vectors: Tensor) -> list[str]:
+    """Names of the parameters at which any of ``vectors`` (each shape (P,), in x's order) is NaN or Inf."""
+    finite = torch.stack([torch.isfinite(v) for v in vectors]).all(0).tolist()
+    return [n for n, ok in zip(problem.param.names, finite) if not ok]
+
+
 def _run_start(problem: FitProblem, x0: Tensor, opt: FitOptions, bar, label: str) -> dict:
     t0 = time.perf_counter()
     history: list[float] = []
@@ -158,8 +164,8 @@ def _run_start(problem: FitProblem, x0: Tensor, opt: FitOptions, bar, label: str
             # a large finite value makes the line search step back instead of failing
             return torch.full_like(loss, 1e30).requires_grad_(True) * 1.0
         loss.backward()
-        if not bool(torch.isfinite(p.grad).all()):
-            names = [n for n, ok in zip(problem.param.names, torch.isfinite(p.grad).tolist()) if not ok]
+        names = _nonfinite_names(problem, p.grad)
+        if names:
             bad.append(f"non-finite gradient w.r.t. {', '.join(names)} at evaluation {len(history) + 1}")
             p.grad.zero_()
             return torch.full_like(loss, 1e30)
@@ -174,10 +180,9 @@ def _run_start(problem: FitProblem, x0: Tensor, opt: FitOptions, bar, label: str
     prev = state.get("prev_loss")
     rel = abs(f_end - float(prev)) / max(abs(f_end), 1e-300) if prev is not None else math.nan
     n_iter = int(state.get("n_iter", 0))
-    finite = (torch.isfinite(x_end) & torch.isfinite(g_end)).tolist()
-    if not math.isfinite(f_end) or not all(finite):
-        bad_names = [n for n, ok in zip(problem.param.names, finite) if not ok]
-        reason = "diverged: non-finite " + (f"{', '.join(bad_names)}" if bad_names else "loss")
+    bad_names = _nonfinite_names(problem, x_end, g_end)
+    if not math.isfinite(f_end) or bad_names:
+        reason = "diverged: non-finite " + (", ".join(bad_names) if bad_names else "loss")
         reason += f" after {len(history)} evaluations" + (f" ({bad[0]})" if bad else "")
         ok = False
         f_end = math.nan
