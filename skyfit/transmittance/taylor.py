@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from ..geometry import safe_sqrt
-from .base import OpticalDepthIntegrator
+from .base import ColumnFn, OpticalDepthIntegrator
 
 TAYLOR_A_DEFAULT: float = 0.45
 """Gałaj 2021, Sec. VI.A.2: grid search over {0, 0.01, ..., 1}^2 for Earth. [1]"""
@@ -119,9 +119,10 @@ class TaylorOpticalDepth(OpticalDepthIntegrator):
             if not bool(((vv >= 0.0) & (vv <= 1.0)).all()):
                 raise ValueError(f"Taylor hyperparameter {nm} must be in [0, 1], got {vv.tolist()}")
 
-    def column(self, r, mu, length, scale_heights, bottom_radius, top_radius) -> Tensor:
-        a = torch.as_tensor(self.a, dtype=r.dtype, device=r.device)
-        b = torch.as_tensor(self.b, dtype=r.dtype, device=r.device)
+    def _hyperparameters(self, scale_heights: Tensor) -> tuple[Tensor, Tensor]:
+        """a, b as tensors on the layers' dtype and device, after checking them and the layers' regime."""
+        a = torch.as_tensor(self.a, dtype=scale_heights.dtype, device=scale_heights.device)
+        b = torch.as_tensor(self.b, dtype=scale_heights.dtype, device=scale_heights.device)
         for nm, v in (("a", a), ("b", b)):
             if v.ndim == 1 and v.shape[0] != scale_heights.shape[-1]:
                 raise ValueError(f"Taylor hyperparameter {nm} has {v.shape[0]} values, one per layer, but there are {scale_heights.shape[-1]} layers")
@@ -130,7 +131,20 @@ class TaylorOpticalDepth(OpticalDepthIntegrator):
         if h_min < TAYLOR_MIN_SCALE_HEIGHT:
             raise ValueError(f"taylor: scale height H = {h_min:.4g} m is below its regime (H >= {TAYLOR_MIN_SCALE_HEIGHT:g} m; "
                              "the column is off by > 10x for grazing rays there); use chapman or a quadrature integrator")
+        return a, b
+
+    def column(self, r, mu, length, scale_heights, bottom_radius, top_radius) -> Tensor:
+        a, b = self._hyperparameters(torch.as_tensor(scale_heights, dtype=r.dtype, device=r.device))
         return taylor_column(r, mu, length, scale_heights, bottom_radius, top_radius, a, b)
+
+    def prepare(self, scale_heights: Tensor, bottom_radius: float, top_radius: float) -> ColumnFn:
+        """The checks once per atmosphere, not once per chunk of rays (each is a host sync on a GPU)."""
+        a, b = self._hyperparameters(scale_heights)
+
+        def fn(r: Tensor, mu: Tensor, length: Tensor) -> Tensor:
+            return taylor_column(r, mu, length, scale_heights, bottom_radius, top_radius, a.to(r.dtype), b.to(r.dtype))
+
+        return fn
 
     def settings(self) -> dict:
         def f(v):
