@@ -118,12 +118,12 @@ def _write_observation(out: Path, atm, img, seed: int) -> tuple[Path, Path]:
 def _png(path: Path, rgb: np.ndarray, valid: np.ndarray) -> None:
     import skimage.io
 
+    from .io.atomic import atomic_path
     from .render import tonemap_srgb8
 
     exposure = 1.0 / max(float(np.percentile(rgb.mean(-1)[valid], 90)), 1e-12)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    skimage.io.imsave(tmp, tonemap_srgb8(rgb, exposure), check_contrast=False)
-    tmp.replace(path)
+    with atomic_path(path, ".tmp.png") as tmp:
+        skimage.io.imsave(tmp, tonemap_srgb8(rgb, exposure), check_contrast=False)
 
 
 def _uncertainty_rows(result: dict, posterior: dict | None) -> list[dict]:
@@ -160,7 +160,8 @@ def _table(rows: list[dict], units: dict) -> str:
 
 def run_demo(out: str | Path, quick: bool = False, progress: bool = False, log=print, seed: int = 0) -> dict:
     """Run the whole demo into ``out``; return the summary dict (also ``out/demo.json``)."""
-    from .fit.run import read_result, run_fit
+    from .fit.run import run_fit
+    from .io.atomic import write_text_atomic
 
     t_start = time.perf_counter()
     out = Path(out)
@@ -191,7 +192,7 @@ def run_demo(out: str | Path, quick: bool = False, progress: bool = False, log=p
         timings["sample_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    lut_dir = _export(out / "RESULT.json", out / "luts", quick, read_result)
+    lut_dir = _export(result, out / "luts", quick)
     timings["export_s"] = time.perf_counter() - t0
     log(f"exported LUTs -> {lut_dir}")
 
@@ -199,12 +200,9 @@ def run_demo(out: str | Path, quick: bool = False, progress: bool = False, log=p
     table = _table(rows, result.get("units", {}))
     log(table)
     timings["total_s"] = time.perf_counter() - t_start
-    if posterior is not None:
-        summary_extra = {"emcee": {k: posterior.get(k) for k in ("laplace_vs_emcee", "sampler", "diagnostics")},
-                         "emcee_pixels": SAMPLE_PIXELS}
-    else:
-        summary_extra = {}
-    summary = {**summary_extra, "quick": quick, "size": size, "wavelengths_nm": lam.tolist(), "sun_deg": list(SUN), "noise": list(NOISE),
+    emcee = {} if posterior is None else {
+        "emcee": {k: posterior.get(k) for k in ("laplace_vs_emcee", "sampler", "diagnostics")}, "emcee_pixels": SAMPLE_PIXELS}
+    summary = {**emcee, "quick": quick, "size": size, "wavelengths_nm": lam.tolist(), "sun_deg": list(SUN), "noise": list(NOISE),
                "truth": TRUTH, "rows": rows, "metrics": {k: m[k] for k in ("loss", "rmse", "rmse_units", "delta_e")},
                "timings_s": timings, "files": sorted(p.name for p in out.iterdir())}
     note = ("σ is statistical (the noise) only. The truth was rendered with a finer model than the fit's (Hillaire "
@@ -219,18 +217,19 @@ def run_demo(out: str | Path, quick: bool = False, progress: bool = False, log=p
               table, "", note, "", f"Fit: loss {m['loss']:.4g} per element (0.5 = at the noise), RMSE {m['rmse']:.3g} {m['rmse_units']}, "
               f"mean ΔE {m['delta_e']:.3g}.", "", "Times [s]: " + ", ".join(f"{k} {v:.1f}" for k, v in timings.items()), "",
               "Files: " + ", ".join(summary["files"]), ""]
-    (out / "report.md").write_text("\n".join(report))
-    (out / "demo.json").write_text(json.dumps(summary, indent=2))
+    write_text_atomic(out / "report.md", "\n".join(report))
+    write_text_atomic(out / "demo.json", json.dumps(summary, indent=2))
     return summary
 
 
 SAMPLE_PIXELS = 800
 """emcee in the demo sees every k-th sky pixel so that at most this many remain: with multiple
-scattering the walkers are evaluated one at a time (skyfit.fit.batched covers single
-scattering, each rebuilding the Hillaire LUT), and 12 walkers x 150 steps on all 12 892
-pixels would take most of an hour on 2 CPU cores. 150 steps are about 3-5 autocorrelation
-times: enough for widths and a corner plot, short of emcee's 50 tau (the run says so). Its widths are those of the subsample (about sqrt(16) = 4x the full data's);
-the ratio to the Laplace widths of the same subsample is what it checks."""
+scattering the walkers are evaluated one at a time, each rebuilding the Hillaire LUT
+(skyfit.fit.batched covers single scattering), and 12 walkers x 150 steps on all 12 892
+pixels would take most of an hour on 2 CPU cores. 150 steps were 9 autocorrelation times
+(tau_max 16.5, docs/uncertainty.md): enough for widths and a corner plot, short of emcee's
+50 tau (the run says so). Its widths are those of the subsample (about sqrt(16) = 4x the
+full data's); the ratio to the Laplace widths of the same subsample is what it checks."""
 
 
 def _sample(observed_exr: Path, out: Path, progress: bool, log) -> dict | None:
@@ -240,20 +239,21 @@ def _sample(observed_exr: Path, out: Path, progress: bool, log) -> dict | None:
     cfg = fit_config(False)
     cfg["sample"] = {"walkers": 12, "steps": 150, "predictive_draws": 16, "max_samples": SAMPLE_PIXELS}
     summ = run_sample([observed_exr], cfg, out / "RESULT.json", out / "posterior", progress=progress)
-    d = summ.get("diagnostics", {})
+    ratios = ", ".join(f"{n} {'-' if r['ratio'] is None else format(r['ratio'], '.2f')}"
+                       for n, r in (summ.get("laplace_vs_emcee") or {}).items())
     log(f"emcee on {SAMPLE_PIXELS} pixels: {summ['sampler']['steps']} steps x {summ['sampler']['walkers']} walkers, "
-        f"max tau {d.get('tau_max', float('nan')):.3g}, emcee/Laplace sigma on the subsample "
-        f"{summ.get('laplace_vs_emcee')} -> {out / 'posterior'}")
+        f"max tau {summ['diagnostics'].get('tau_max', float('nan')):.3g}; Laplace sigma / emcee sigma on the subsample: "
+        f"{ratios} -> {out / 'posterior'}")
     return summ
 
 
-def _export(result_path: Path, lut_dir: Path, quick: bool, read_result) -> Path:
+def _export(result: dict, lut_dir: Path, quick: bool) -> Path:
+    """Bruneton LUTs of the fitted atmosphere (what ``skyfit export-lut`` writes), small tables with ``quick``."""
     from .export import atmosphere_from_result, export_luts
     from .scattering.bruneton_tables import TableSizes
     from .scattering.multiple import precompute
 
-    res = read_result(result_path)
-    atm = atmosphere_from_result(res, res["model"]["wavelengths_nm"])
+    atm = atmosphere_from_result(result, result["model"]["wavelengths_nm"])
     sizes = TableSizes(64, 16, 32, 8, 8, 16, 8, 4) if quick else TableSizes(128, 32, 32, 8, 16, 64, 16, 8)
     with torch.no_grad():
         tables = precompute(atm, orders=4, sizes=sizes)
