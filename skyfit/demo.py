@@ -85,6 +85,7 @@ def _render_truth(size: int, lam: np.ndarray, quick: bool):
 def _write_observation(out: Path, atm, img, seed: int) -> tuple[Path, Path]:
     """truth.exr (noise-free) and observed.exr (noisy, with its noise model in the header)."""
     from . import __version__
+    from .fit.data import noise_sigma
     from .io import write_exr
     from .render import spectral_to_xyz, xyz_to_linear_srgb
 
@@ -93,7 +94,7 @@ def _write_observation(out: Path, atm, img, seed: int) -> tuple[Path, Path]:
     median = float(spec[valid].median())
     rel, absolute = NOISE[0], NOISE[1] * median
     gen = torch.Generator().manual_seed(seed)
-    sigma = torch.sqrt((rel * spec) ** 2 + absolute**2)
+    sigma = noise_sigma(spec, rel, absolute)  # the model observation_from_exr reads back from the header
     noisy = torch.where(valid.unsqueeze(-1), spec + sigma * torch.randn(spec.shape, generator=gen, dtype=spec.dtype), 0.0)
     lam = atm.wavelengths.cpu().double()
     paths = []

@@ -28,6 +28,18 @@ class DataError(ValueError):
     """Data that cannot be fitted: unreadable, missing metadata, NaN or negative values."""
 
 
+def check_noise_model(relative: float, absolute: float, where: str) -> None:
+    """DataError naming ``where`` unless relative >= 0, absolute >= 0 and not both 0."""
+    if not (relative >= 0 and absolute >= 0 and relative + absolute > 0):
+        raise DataError(f"{where}: the noise model needs sigma_relative >= 0 and sigma_absolute >= 0, not both 0; "
+                        f"got {relative}, {absolute}")
+
+
+def noise_sigma(values: Tensor, relative: float, absolute: float) -> Tensor:
+    """The noise model sigma = hypot(relative x value, absolute), shape of ``values``. [values' unit]"""
+    return torch.sqrt((relative * values) ** 2 + absolute**2)
+
+
 KINDS = ("spectral", "rgb")
 SPECTRAL_UNITS = "W/(m^2 sr nm)"
 RGB_UNITS = "linear sRGB of XYZ with 683 lm/W (Y in cd/m^2)"
@@ -257,11 +269,10 @@ def observation_from_exr(
     rel = float(noise.get("sigma_relative", sigma_relative))
     absolute = noise.get("sigma_absolute", sigma_absolute)
     absolute = 1e-3 * float(vals.median()) if absolute is None else float(absolute)
-    if not (rel >= 0 and absolute >= 0 and rel + absolute > 0):
-        raise DataError(f"{path}: the noise model needs sigma_relative >= 0 and sigma_absolute >= 0, not both 0")
+    check_noise_model(rel, absolute, str(path))
     if absolute == 0 and bool((vals == 0).any()):
         absolute = 1e-3 * float(vals[vals > 0].median()) if bool((vals > 0).any()) else 1e-12
-    sigma = torch.sqrt((rel * vals) ** 2 + absolute**2)
+    sigma = noise_sigma(vals, rel, absolute)
     loc = sun.get("location")
     return Observation(
         name=path.stem, source=str(path), kind=kind, directions=view[idx],

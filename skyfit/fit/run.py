@@ -17,7 +17,8 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from .data import Observation, expand_data_paths, observation_from_exr, observation_from_kider
+from .data import (Observation, check_noise_model, expand_data_paths, noise_sigma, observation_from_exr,
+                   observation_from_kider)
 from .losses import make_loss
 from .model import FitProblem, SkyModel
 from .optimise import FitOptions, fit
@@ -159,11 +160,9 @@ def with_noise_model(obs: Observation, relative: float, absolute: float) -> Obse
     states the instrument's error instead; ``[0, a]`` weights every element alike, which makes
     the loss the published score (unweighted RMSE). [1], [W/(m^2 sr nm)]
     """
-    if not (relative >= 0 and absolute >= 0 and relative + absolute > 0):
-        raise FitError(f"spectral_noise needs relative >= 0 and absolute >= 0, not both 0; got {relative}, {absolute}")
-    sigma = torch.sqrt((relative * obs.values) ** 2 + absolute**2)
+    check_noise_model(relative, absolute, f"{obs.source}: fit.spectral_noise")
     meta = {**obs.metadata, "sigma_model": {"relative": relative, "absolute": absolute}}
-    return dataclasses.replace(obs, sigma=sigma, metadata=meta)
+    return dataclasses.replace(obs, sigma=noise_sigma(obs.values, relative, absolute), metadata=meta)
 
 
 def model_wavelengths(observations: Sequence[Observation], wavelengths: str | None) -> np.ndarray:
