@@ -93,11 +93,22 @@ def stage_joint(work: Path, day: Path) -> None:
     out = work / "joint.json"
     if out.exists():
         return
+    from skyfit.fit.parameters import PARAMETERS
+
     cfg = _cfg()
+    caps = _captures(day)
+    free = cfg["fit"]["free"]
+    # Warm start from the per-capture fits when they exist: the atmosphere at their median, each
+    # capture's exposure and orientation at its own fitted values (a two-stage fit).
+    fits = [work / f"fit_{_short(c)}.json" for c in caps]
+    overrides: dict = {"max_iter": 300}
+    if all(f.exists() for f in fits):
+        per = [json.loads(f.read_text())["parameters"] for f in fits]
+        overrides["initial"] = {n: ([p[n] for p in per] if PARAMETERS[n].nuisance else float(np.median([p[n] for p in per])))
+                                for n in free}
     t0 = time.process_time()
-    # 5 shared + 3 x 15 per-capture parameters: more L-BFGS iterations than one capture needs
-    res = run_fit(_captures(day), cfg, out, config_source=str(CONFIG), plots=False, progress=True,
-                  overrides={"max_iter": 300})
+    # 5 shared + 5 x 15 per-capture parameters: more L-BFGS iterations than one capture needs
+    res = run_fit(caps, cfg, out, config_source=str(CONFIG), plots=False, progress=True, overrides=overrides)
     print(json.dumps({"joint_rmse": res["metrics"]["rmse"], "cpu_s": time.process_time() - t0,
                       "per": [round(p["rmse"], 3) for p in res["metrics"]["per_observation"]]}), flush=True)
 
@@ -228,6 +239,7 @@ def stage_report(work: Path, day: Path) -> str:
 
 
 def main() -> None:
+    global CONFIG
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--stage", choices=("config", "fits", "joint", "cross", "report"), required=True)
     ap.add_argument("--day", default=str(DAY))
@@ -236,7 +248,9 @@ def main() -> None:
     ap.add_argument("--sources", default="12.00", help="cross: comma list of HH.MM source captures")
     ap.add_argument("--refit", action="store_true", help="cross: --refit-nuisance")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--config", default=str(CONFIG), help="the fit config (default configs/kider.yaml)")
     a = ap.parse_args()
+    CONFIG = Path(a.config)
     torch.set_num_threads(a.threads)
     work, day = Path(a.work), Path(a.day)
     work.mkdir(parents=True, exist_ok=True)

@@ -477,7 +477,7 @@ def _add_fit_parsers(sub) -> None:
     e = sub.add_parser("evaluate", help="how well a fitted atmosphere predicts DATA (its own sun position)")
     e.add_argument("result", help="RESULT.json of skyfit fit")
     e.add_argument("data", nargs="+", help="an .exr fisheye, a Kider capture folder, or a folder of either")
-    e.add_argument("--refit-nuisance", action="store_true", help="re-estimate exposure and the sun azimuth and zenith offsets on DATA (atmosphere fixed)")
+    e.add_argument("--refit-nuisance", action="store_true", help="re-estimate exposure and the orientation the fit modelled (sun offsets, camera tilts; default the sun azimuth and zenith offsets) on DATA, atmosphere fixed")
     e.add_argument("--location", help="Kider data: LAT,LON[,ELEV] (default: the Kider site)")
     e.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
     e.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar (default: on a terminal)")

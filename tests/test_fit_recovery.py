@@ -8,6 +8,7 @@ Small images (<= 32 x 32), 6 wavelengths, single scattering, Gauss-Legendre opti
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from pathlib import Path
 
@@ -122,6 +123,30 @@ def test_recovers_the_sun_azimuth_offset():
     problem = FitProblem(param, SkyModel(_integrator(), view_samples=VIEW), [obs], make_loss("squared"))
     res = fit(problem, FitOptions(starts=1))
     assert math.degrees(res.parameters["sun_azimuth_offset"]) == pytest.approx(5.0, abs=0.2)
+    assert res.parameters["mie_g"] == pytest.approx(0.8, abs=0.01)
+
+
+def test_recovers_a_camera_tilt():
+    """The instrument's zenith axis leans 3 deg North and 2 deg West: it reports the views in its own frame.
+
+    The world <- instrument rotation is built with scipy (R_y(east) R_x(-north)), independently of
+    FitProblem.view_directions; the fit must find the tilt, not a sun offset that mimics it.
+    """
+    from scipy.spatial.transform import Rotation
+
+    north, east = math.radians(3.0), math.radians(-2.0)
+    obs = synthetic(_config("earth"), 1.0, (40.0, 200.0), size=24, seed=5)
+    rot = Rotation.from_rotvec([0.0, east, 0.0]) * Rotation.from_rotvec([-north, 0.0, 0.0])
+    assert np.allclose(rot.apply([0.0, 0.0, 1.0]), [math.sin(east) * math.cos(north), math.sin(north),
+                                                     math.cos(east) * math.cos(north)])
+    inst = torch.from_numpy(rot.inv().apply(obs.directions.numpy()))
+    obs = dataclasses.replace(obs, directions=inst)
+    base = atmosphere_from_config(_config("earth"), LAM)
+    param = Parameterisation(base, ["mie_g", "exposure", "camera_tilt_north", "camera_tilt_east"], values={"mie_g": 0.7})
+    problem = FitProblem(param, SkyModel(_integrator(), view_samples=VIEW), [obs], make_loss("squared"))
+    res = fit(problem, FitOptions(starts=1))
+    assert math.degrees(res.parameters["camera_tilt_north"]) == pytest.approx(3.0, abs=0.1)
+    assert math.degrees(res.parameters["camera_tilt_east"]) == pytest.approx(-2.0, abs=0.1)
     assert res.parameters["mie_g"] == pytest.approx(0.8, abs=0.01)
 
 

@@ -46,9 +46,7 @@ from ..scattering.single import sun_ray_cosine, sun_visible_fraction, view_ray_s
 from ..transmittance.chapman import ChapmanOpticalDepth, segment_geometry
 from ..transmittance.quadrature import QuadratureOpticalDepth
 from .model import FitProblem
-from .parameters import PARAMETERS
-
-SUN_OFFSETS = ("sun_azimuth_offset", "sun_zenith_offset")
+from .parameters import ORIENTATION, PARAMETERS
 
 
 # -- columns of segments with the scale height as a batched argument ----------------------------
@@ -169,7 +167,7 @@ class _ObsGeometry:
         sun = problem.sun_vectors(phys0, i)
         if sun.ndim == 2:
             sun = sun[o.mask][rays]
-        view = o.directions[o.mask][rays].to(atm.dtype)
+        view = problem.view_directions(phys0, i)[rays].to(atm.dtype)
         sun = torch.as_tensor(sun, dtype=atm.dtype, device=atm.device)
         mu = torch.clamp(view[..., 2], -1.0, 1.0)
         mu_s = torch.clamp(sun[..., 2], -1.0, 1.0)
@@ -299,10 +297,8 @@ class BatchedLikelihood:
         if not isinstance(m.integrator, (ChapmanOpticalDepth, QuadratureOpticalDepth)):
             return f"integrator {m.integrator.name!r} (batched: chapman, gauss, trapezoid, midpoint, simpson)"
         free = set(problem.param.free)
-        if free & set(SUN_OFFSETS):
-            return f"free {sorted(free & set(SUN_OFFSETS))} move the view geometry"
-        if getattr(m, "chunk_bytes", None) not in (None,) and False:
-            return ""
+        if free & set(ORIENTATION):
+            return f"free {sorted(free & set(ORIENTATION))} move the view geometry"
         return ""
 
     # -- parameters ------------------------------------------------------------------------

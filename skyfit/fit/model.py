@@ -192,6 +192,24 @@ class FitProblem:
         o, nu = self.observations[i], self.param.nuisance(phys, i)
         return zenith_azimuth_to_enu(o.sun_zenith + nu["sun_zenith_offset"], o.sun_azimuth + nu["sun_azimuth_offset"])
 
+    def view_directions(self, phys: dict, i: int) -> Tensor:
+        """Observation i's used view directions in the world frame, shape (N_i, 3).
+
+        The instrument's zenith axis is tilted by ``camera_tilt_north`` toward North and
+        ``camera_tilt_east`` toward East: world = R_y(tilt_east) R_x(-tilt_north) instrument
+        (ENU axes; R_x, R_y the right-handed rotations about East and North). A rigid rotation,
+        unlike a sun zenith offset: every view moves with it, horizon and sun alike.
+        """
+        o = self.observations[i]
+        d = o.directions[o.mask]
+        tn, te = phys["camera_tilt_north"], phys["camera_tilt_east"]
+        if tn.ndim:
+            tn, te = tn[i], te[i]
+        cn, sn, ce, se = torch.cos(tn), torch.sin(tn), torch.cos(te), torch.sin(te)
+        x, y, z = d.unbind(-1)
+        y1, z1 = y * cn + z * sn, -y * sn + z * cn  # R_x(-tilt_north): the zenith goes to (0, sn, cn)
+        return torch.stack([x * ce + z1 * se, y1, -x * se + z1 * ce], -1)  # R_y(tilt_east)
+
     def spectra(self, phys: dict, atm: Atmosphere | None = None) -> list[Tensor]:
         """Model spectral radiance for every used sample of each observation (N_i, W), no exposure."""
         atm = self.param.atmosphere(phys) if atm is None else atm
@@ -203,7 +221,7 @@ class FitProblem:
             sun = self.sun_vectors(phys, i)
             if sun.ndim == 2:
                 sun = sun[o.mask]
-            out.append(renderers[o.altitude_m](o.directions[o.mask], sun) * self.solar_scale[i])
+            out.append(renderers[o.altitude_m](self.view_directions(phys, i), sun) * self.solar_scale[i])
         return out
 
     def predict_unscaled(self, phys: dict) -> list[Tensor]:

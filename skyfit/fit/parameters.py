@@ -17,8 +17,8 @@ which is what Adam's step size and L-BFGS's first step assume.
 
 Names, units and meanings are listed in :data:`PARAMETERS` and in docs/fitting.md.
 *Shared* parameters describe the atmosphere; the *nuisance* parameters
-(``exposure``, ``sun_azimuth_offset``, ``sun_zenith_offset``, ``noise_scale``)
-describe the instrument and may take one value per observation in a joint fit.
+(``exposure``, ``sun_azimuth_offset``, ``sun_zenith_offset``, ``camera_tilt_north``,
+``camera_tilt_east``, ``noise_scale``) describe the instrument and may take one value per observation in a joint fit.
 """
 from __future__ import annotations
 
@@ -131,16 +131,22 @@ PARAMETERS: dict[str, ParameterSpec] = {
                       description="added to the sun azimuth (clockwise); = minus a camera up-azimuth offset"),
         ParameterSpec("sun_zenith_offset", "rad", "interval", 1.0, -10 * _DEG, 10 * _DEG, (-0.02, 0.02), nuisance=True,
                       description="added to the sun zenith angle, within +-10 degrees"),
+        ParameterSpec("camera_tilt_north", "rad", "interval", 1.0, -10 * _DEG, 10 * _DEG, (-0.02, 0.02), nuisance=True,
+                      description="the instrument's zenith axis tilted toward North, within +-10 degrees"),
+        ParameterSpec("camera_tilt_east", "rad", "interval", 1.0, -10 * _DEG, 10 * _DEG, (-0.02, 0.02), nuisance=True,
+                      description="the instrument's zenith axis tilted toward East, within +-10 degrees"),
     )
 }
 """Every fittable parameter by name (docs/fitting.md has the same table)."""
 
 NUISANCE: tuple[str, ...] = tuple(n for n, s in PARAMETERS.items() if s.nuisance)
 ATMOSPHERE_PARAMETERS: tuple[str, ...] = tuple(n for n, s in PARAMETERS.items() if not s.nuisance)
-DEFAULT_PER_OBSERVATION: tuple[str, ...] = ("exposure", "sun_azimuth_offset", "sun_zenith_offset")
+ORIENTATION: tuple[str, ...] = ("sun_azimuth_offset", "sun_zenith_offset", "camera_tilt_north", "camera_tilt_east")
+"""The instrument's orientation: sun offsets and the tilt of its zenith axis (a camera yaw is -sun_azimuth_offset)."""
+DEFAULT_PER_OBSERVATION: tuple[str, ...] = ("exposure",) + ORIENTATION
 """Nuisance parameters that take one value per observation unless the config says otherwise."""
 
-_NUISANCE_DEFAULTS = {"exposure": 1.0, "noise_scale": 1.0, "sun_azimuth_offset": 0.0, "sun_zenith_offset": 0.0}
+_NUISANCE_DEFAULTS = {"exposure": 1.0, "noise_scale": 1.0, **{n: 0.0 for n in ORIENTATION}}
 
 
 def check_names(names: Iterable[str], what: str = "free parameter") -> list[str]:
@@ -466,7 +472,7 @@ class Parameterisation:
             lo, hi = spec.typical
             if name == "ground_albedo_scale":
                 hi = min(hi, 0.99 * self._albedo_scale_hi)
-            if lo == hi or name in ("sun_azimuth_offset", "sun_zenith_offset", "exposure"):
+            if lo == hi or name in ORIENTATION or name == "exposure":
                 continue
             perm = torch.randperm(m, generator=generator)
             u = (perm.to(torch.float64) + torch.rand(m, generator=generator, dtype=torch.float64)) / m

@@ -22,7 +22,7 @@ from .data import (Observation, check_noise_model, expand_data_paths, noise_sigm
 from .losses import make_loss
 from .model import FitProblem, SkyModel
 from .optimise import FitOptions, fit
-from .parameters import NUISANCE, PARAMETERS, FitError, Parameterisation, check_names
+from .parameters import NUISANCE, ORIENTATION, PARAMETERS, FitError, Parameterisation, check_names
 from .report import dumps, plot_all, write_text_atomic
 
 DEFAULT_FREE = ("rayleigh_scale", "mie_beta_550", "mie_scale_height", "mie_g", "exposure")
@@ -337,8 +337,19 @@ def write_result(problem: FitProblem, res, out: Path, *, command: str, settings:
 
 # -- evaluate -----------------------------------------------------------------------------------
 REFIT_NUISANCE = ("exposure", "sun_azimuth_offset", "sun_zenith_offset")
-"""What ``evaluate --refit-nuisance`` re-estimates on the target: the calibration scale and the
-instrument's orientation (azimuth and zenith offsets); the atmosphere stays fixed."""
+"""What ``evaluate --refit-nuisance`` re-estimates on the target when the source fit freed no
+orientation parameter: the calibration scale and the sun azimuth and zenith offsets; the
+atmosphere stays fixed (:func:`refit_names`)."""
+
+
+def refit_names(source_free) -> list[str]:
+    """The nuisance parameters ``evaluate --refit-nuisance`` re-estimates for a fit that freed ``source_free``:
+    the exposure and the orientation parameters (sun offsets, camera tilts) that fit modelled, or
+    :data:`REFIT_NUISANCE` when it modelled none."""
+    orientation = [n for n in ORIENTATION if n in set(source_free)]
+    return ["exposure", *orientation] if orientation else list(REFIT_NUISANCE)
+
+
 REQUIRED_RESULT_KEYS = ("parameters", "free", "integrator", "config", "model")
 
 
@@ -385,8 +396,8 @@ def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_n
 
     Without ``refit_nuisance`` the fitted exposure and offsets are used (the observation's own
     when it was among the fitted data, else their mean). With it, the atmosphere stays fixed
-    while :data:`REFIT_NUISANCE` (exposure and the sun azimuth and zenith offsets) are re-estimated
-    per observation.
+    while :func:`refit_names` (exposure and the orientation parameters the fit modelled: sun
+    offsets, camera tilts) are re-estimated per observation.
     """
     res = read_result(result_path)
     try:
@@ -411,7 +422,7 @@ def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_n
         vals = [_nuisance_for(res, o, n) for o in observations]
         if all(v is not None for v in vals):
             nuis_values[n] = vals if n != "noise_scale" else vals[0]
-    free = list(REFIT_NUISANCE) if refit_nuisance else []
+    free = refit_names(res.get("free", [])) if refit_nuisance else []
     per = [n for n in NUISANCE if n != "noise_scale"]
     param = Parameterisation(base, free, len(observations), per, {**atm_values, **nuis_values})
     problem = FitProblem(param, model, observations, loss, base_sun_distance_au=base_dist)
@@ -426,6 +437,6 @@ def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_n
     return {
         "rmse": metrics["rmse"], "rmse_units": metrics["rmse_units"], "delta_e": metrics["delta_e"],
         "n_samples": metrics["n_samples"], "loss": metrics["loss"], "per_observation": metrics["per_observation"],
-        "refit_nuisance": refit_nuisance, "nuisance": {n: phys[n] for n in ("exposure", "sun_azimuth_offset", "sun_zenith_offset")},
+        "refit_nuisance": refit_nuisance, "nuisance": {n: phys[n] for n in ("exposure", *ORIENTATION)},
         "convergence": conv, "result": str(result_path), "data": [o.summary() for o in observations],
     }

@@ -137,6 +137,8 @@ DEFAULT_PRIORS: dict[str, Prior] = {
     "noise_scale": Prior("loguniform", 1e-2, 1e2),
     "sun_azimuth_offset": Prior("uniform", -45 * _DEG, 45 * _DEG),
     "sun_zenith_offset": Prior("uniform", -10 * _DEG, 10 * _DEG),
+    "camera_tilt_north": Prior("uniform", -10 * _DEG, 10 * _DEG),
+    "camera_tilt_east": Prior("uniform", -10 * _DEG, 10 * _DEG),
 }
 """Default prior of each parameter (physical units, docs/uncertainty.md): the transform's range
 (log-uniform for positive scale parameters) where that range is physical, else a wide one."""

@@ -76,7 +76,7 @@ from .data import Observation
 from .losses import Loss
 from .model import FitProblem, SkyModel
 from .optimise import FitOptions, FitResult, fit
-from .parameters import NUISANCE, PARAMETERS, FitError, Parameterisation
+from .parameters import NUISANCE, ORIENTATION, PARAMETERS, FitError, Parameterisation
 
 SIGMA_MODES = ("scaled", "known")
 MIN_DELTA_BIC: float = 2.0
@@ -574,7 +574,7 @@ def selected_config(config: dict, components: Sequence[str]) -> dict:
     return cfg
 
 
-SELECT_NUISANCE = ("exposure", "sun_azimuth_offset", "sun_zenith_offset")
+SELECT_NUISANCE = ("exposure",) + ORIENTATION
 
 
 def run_select(data, config: dict, out, *, overrides: dict | None = None, config_source: str = "",
