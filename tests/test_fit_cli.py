@@ -91,6 +91,24 @@ def test_fit_and_evaluate_a_spectral_exr(sky, tmp_path, capsys):
     assert ev2["rmse"] <= ev["rmse"] * 1.01
 
 
+def test_camera_tilts_are_fitted_and_refitted(sky, tmp_path, capsys):
+    """An untilted render: the fitted tilts stay at zero; --refit-nuisance re-estimates the orientation the fit modelled."""
+    out = tmp_path / "RESULT.json"
+    rc, so, se = _run(["fit", sky / "sky.exr", "--config", "earth", "--out", out, "--no-plots",
+                       "--free", "mie_g,exposure,camera_tilt_north,camera_tilt_east", *FAST], capsys)
+    assert rc == 0, se
+    res = json.loads(out.read_text())
+    for n in ("camera_tilt_north", "camera_tilt_east"):
+        assert abs(math.degrees(res["parameters"][n])) < 0.05, (n, res["parameters"][n])
+    assert abs(res["parameters"]["mie_g"] - TRUE_G) < 1e-3
+    rc, so, se = _run(["evaluate", out, sky / "sky.exr", "--json", "--refit-nuisance"], capsys)
+    assert rc == 0, se
+    ev = json.loads(so)
+    assert ev["refitted"] == ["exposure", "camera_tilt_north", "camera_tilt_east"]
+    assert abs(math.degrees(ev["nuisance"]["camera_tilt_north"])) < 0.05
+    assert ev["rmse"] <= res["metrics"]["rmse"] * 1.01
+
+
 def test_fit_section_of_the_config_and_rgb_data(sky, tmp_path, capsys):
     cfg = tmp_path / "fit.yaml"
     text = (Path(__file__).resolve().parents[1] / "skyfit" / "configs" / "earth.yaml").read_text()

@@ -437,6 +437,6 @@ def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_n
     return {
         "rmse": metrics["rmse"], "rmse_units": metrics["rmse_units"], "delta_e": metrics["delta_e"],
         "n_samples": metrics["n_samples"], "loss": metrics["loss"], "per_observation": metrics["per_observation"],
-        "refit_nuisance": refit_nuisance, "nuisance": {n: phys[n] for n in ("exposure", *ORIENTATION)},
+        "refit_nuisance": refit_nuisance, "refitted": free, "nuisance": {n: phys[n] for n in ("exposure", *ORIENTATION)},
         "convergence": conv, "result": str(result_path), "data": [o.summary() for o in observations],
     }
