@@ -185,6 +185,7 @@ def _instrument(fits: dict) -> list[str]:
         n, e = np.degrees(p["camera_tilt_north"]), np.degrees(p["camera_tilt_east"])
         lean = np.degrees(np.arctan2(e, n)) % 360.0
         sun = r["data"][0]["sun_azimuth_deg"]
+        sun = sun["mean"] if isinstance(sun, dict) else sun  # per-sample suns: their mean
         diff = (lean - sun + 180.0) % 360.0 - 180.0
         rows.append((c, np.hypot(n, e), lean, sun, diff, np.degrees(p.get("sun_zenith_offset", 0.0))))
     d = np.array([x[4] for x in rows])
