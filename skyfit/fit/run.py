@@ -391,7 +391,7 @@ def _nuisance_for(res: dict, obs: Observation, name: str):
 
 
 def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_nuisance: bool = False,
-                 kider_site: dict | None = None, progress: bool = False) -> dict:
+                 kider_site: dict | None = None, progress: bool = False, refit: Sequence[str] | None = None) -> dict:
     """How well a fitted atmosphere predicts DATA, with DATA's own sun position (CONTRACT.md).
 
     Without ``refit_nuisance`` the fitted exposure and offsets are used (the observation's own
@@ -422,7 +422,11 @@ def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_n
         vals = [_nuisance_for(res, o, n) for o in observations]
         if all(v is not None for v in vals):
             nuis_values[n] = vals if n != "noise_scale" else vals[0]
-    free = refit_names(res.get("free", [])) if refit_nuisance else []
+    if refit is not None:
+        bad = [n for n in check_names(refit, "refit parameter") if not PARAMETERS[n].nuisance or n == "noise_scale"]
+        if bad:
+            raise FitError(f"only exposure and orientation parameters can be refitted, not {bad}")
+    free = (list(refit) if refit is not None else refit_names(res.get("free", []))) if refit_nuisance else []
     per = [n for n in NUISANCE if n != "noise_scale"]
     param = Parameterisation(base, free, len(observations), per, {**atm_values, **nuis_values})
     problem = FitProblem(param, model, observations, loss, base_sun_distance_au=base_dist)
