@@ -397,7 +397,8 @@ def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_n
     Without ``refit_nuisance`` the fitted exposure and offsets are used (the observation's own
     when it was among the fitted data, else their mean). With it, the atmosphere stays fixed
     while :func:`refit_names` (exposure and the orientation parameters the fit modelled: sun
-    offsets, camera tilts) are re-estimated per observation.
+    offsets, camera tilts) are re-estimated per observation; ``refit`` names them instead (an API
+    option: e.g. exposure and sun azimuth only, as a reference that re-estimated just those).
     """
     res = read_result(result_path)
     try:
