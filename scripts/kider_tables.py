@@ -27,6 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from skyfit.fit.parameters import ORIENTATION
+
 ROOT = Path(__file__).resolve().parents[1]
 DAY = ROOT.parent / "shared" / "data" / "kider2014" / "2013-05-27"
 CONFIG = ROOT / "configs" / "kider.yaml"
@@ -136,8 +138,6 @@ def stage_cross(work: Path, day: Path, sources: list[str], refit: bool, names: l
             out.write_text(json.dumps(done, indent=1))
             print(src, name, mode, round(ev["rmse"], 3), flush=True)
 
-
-from skyfit.fit.parameters import ORIENTATION  # noqa: E402
 
 MODE_LABELS = {"asis": "as is", "refit": "--refit-nuisance",
                "refitaz": "refit of exposure and sun azimuth only (as the reference model)"}
