@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from skyfit.atmosphere import atmosphere_from_config, load_yaml
-from skyfit.cli import parse_integrator
+from skyfit.transmittance import parse_integrator
 from skyfit.fit import FitOptions, FitProblem, Parameterisation, SkyModel, fit, make_loss, observation_from_kider
 
 DAY = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kider2014" / "2013-05-27"

@@ -27,7 +27,7 @@ import torch
 
 from skyfit.atmosphere import load_atmosphere
 from skyfit.camera import FisheyeCamera
-from skyfit.cli import parse_integrator
+from skyfit.transmittance import parse_integrator
 from skyfit.fit import FitOptions, FitProblem, Observation, Parameterisation, SkyModel, fit, make_loss
 
 CASES = {

@@ -19,6 +19,7 @@ Score: RMSE over the valid samples and 36 bands of 10 nm in 360-720 nm, mW/(m^2 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
 import time
@@ -70,20 +71,14 @@ def stage_fits(work: Path, day: Path, only: list[str] | None) -> None:
 
 def stage_config(work: Path, day: Path) -> None:
     """The config's atmosphere as is (no fit, exposure 1, no offsets) with the fit's renderer: RMSE per capture."""
-    from skyfit.fit.model import FitProblem
-    from skyfit.fit.parameters import Parameterisation
-    from skyfit.fit.run import _base_atmosphere, _load, _model, fit_settings, make_loss, model_wavelengths
+    from skyfit.fit.problem import fit_settings, prepare
 
     cfg = _cfg()
-    s = fit_settings(cfg.get("fit"))
+    s = dataclasses.replace(fit_settings(cfg.get("fit")), max_samples=None)
     out = {}
     for cap in _captures(day):
-        obs = _load([cap], s, None, None)
-        lam = model_wavelengths(obs, s.wavelengths)
-        base, dist = _base_atmosphere(cfg, lam, obs, torch.float64)
-        param = Parameterisation(base, [])
-        problem = FitProblem(param, _model(s), obs, make_loss(s.loss), base_sun_distance_au=dist)
-        m = problem.metrics(param.initial_vector())
+        problem = prepare([cap], cfg, s).problem([])
+        m = problem.metrics(problem.param.initial_vector())
         out[_short(cap)] = {"rmse": m["rmse"], "delta_e": m["delta_e"]}
         print(_short(cap), round(m["rmse"], 3), flush=True)
     (work / "config_scores.json").write_text(json.dumps(out, indent=1))

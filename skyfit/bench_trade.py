@@ -318,7 +318,7 @@ def run_trade_study(out: Path, quick: bool = False, device: str = "cpu", as_json
 
     from .atmosphere import load_atmosphere
     from .camera import FisheyeCamera
-    from .cli import parse_integrator
+    from .transmittance import parse_integrator
     from .render import render_fisheye, spectral_to_xyz_matrix
     from .scattering.hillaire import hillaire_lut
     from .scattering.multiple import precompute

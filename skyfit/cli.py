@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 
 EXIT_USAGE = 2
-DEFAULT_WAVELENGTHS = "400:700:20"
 
 
 class UserError(ValueError):
@@ -23,52 +22,9 @@ class UserError(ValueError):
 
 
 # -- parsing helpers -----------------------------------------------------------
-def parse_wavelengths(text: str) -> np.ndarray:
-    """``START:STOP:STEP`` (inclusive of STOP when it falls on the grid) or a comma list, in nm."""
-    try:
-        if ":" in text:
-            parts = [float(p) for p in text.split(":")]
-            if len(parts) != 3 or parts[2] <= 0 or parts[1] < parts[0]:
-                raise ValueError
-            start, stop, step = parts
-            lam = np.arange(start, stop + step * 1e-9, step)
-        else:
-            lam = np.array([float(p) for p in text.split(",") if p.strip()])
-    except ValueError:
-        raise UserError(f"--wavelengths must be START:STOP:STEP or a comma list in nm, got {text!r}") from None
-    if lam.size == 0 or np.any(~np.isfinite(lam)) or np.any(lam < 200) or np.any(lam > 3000):
-        raise UserError(f"--wavelengths must lie in 200-3000 nm, got {text!r}")
-    if np.unique(lam).size != lam.size:
-        raise UserError(f"--wavelengths has duplicates: {text!r}")
-    return lam
-
-
-def parse_integrator(text: str):
-    """``NAME`` or ``NAME:key=value,key=value`` -> integrator instance.
-
-    A value ``v1/v2`` is a list, one per layer (Rayleigh/Mie), e.g. the per-layer
-    Taylor pairs of ``skyfit calibrate-integrator``: ``taylor:a=0.367/0.424,b=0.359/0.116``.
-    """
-    from .transmittance import make_integrator
-
-    def number(val: str):
-        val = val.strip()
-        try:
-            return int(val) if val.lstrip("-").isdigit() else float(val)
-        except ValueError:
-            return val
-
-    name, _, opts = text.partition(":")
-    settings: dict = {}
-    for item in filter(None, opts.split(",")):
-        key, eq, val = item.partition("=")
-        if not eq:
-            raise UserError(f"integrator option must be key=value, got {item!r}")
-        settings[key.strip()] = [number(v) for v in val.split("/")] if "/" in val else number(val)
-    try:
-        return make_integrator(name.strip(), **settings)
-    except ValueError as e:
-        raise UserError(str(e)) from None
+# The spec parsers live with what they parse and raise ValueError; main() turns that into one line.
+from .atmosphere.wavelengths import DEFAULT_WAVELENGTHS, parse_wavelengths  # noqa: E402
+from .transmittance import parse_integrator  # noqa: E402
 
 
 def _dtype(name: str):
@@ -595,8 +551,8 @@ def cmd_export_lut(args) -> int:
 
     import torch
 
-    from .export import atmosphere_from_result, export_luts
-    from .fit.run import read_result
+    from .export import export_luts
+    from .fit.results import atmosphere_from_result, read_result
     from .scattering.bruneton_tables import TableSizes
     from .scattering.multiple import precompute
 

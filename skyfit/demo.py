@@ -250,7 +250,8 @@ def _sample(observed_exr: Path, out: Path, progress: bool, log) -> dict | None:
 
 def _export(result: dict, lut_dir: Path, quick: bool) -> Path:
     """Bruneton LUTs of the fitted atmosphere (what ``skyfit export-lut`` writes), small tables with ``quick``."""
-    from .export import atmosphere_from_result, export_luts
+    from .export import export_luts
+    from .fit.results import atmosphere_from_result
     from .scattering.bruneton_tables import TableSizes
     from .scattering.multiple import precompute
 

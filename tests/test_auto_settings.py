@@ -135,7 +135,7 @@ def test_chosen_single_scattering_settings_meet_the_tolerance(shipped):
     set than the bench's 40 x 40) against Gauss-Legendre 32 x 128 nodes in float64."""
     from skyfit.atmosphere import load_atmosphere
     from skyfit.camera import FisheyeCamera
-    from skyfit.cli import parse_integrator
+    from skyfit.transmittance import parse_integrator
     from skyfit.render import render_fisheye
     from skyfit.transmittance import make_integrator
 
@@ -177,12 +177,12 @@ def test_fit_overrides_from_the_data_noise(shipped):
 
 
 def test_fit_settings_resolve_accuracy():
-    from skyfit.fit.run import _resolve_accuracy, fit_settings
+    from skyfit.fit.problem import fit_settings, resolve_accuracy
 
     s = fit_settings({"accuracy": "de=1", "integrator": "taylor", "view_samples": 3})
     obs = [SimpleNamespace(values=torch.ones(3, 2), sigma=torch.full((3, 2), 0.01), mask=torch.ones(3, dtype=torch.bool),
                            sun_zenith=torch.tensor(0.5), altitude_m=0.0)]
-    s2, model = _resolve_accuracy(s, obs)
+    s2, model = resolve_accuracy(s, obs)
     c = choose(Tolerance("de", 1.0), math.degrees(0.5), 0.0, dtype="float64")
     assert (s2.integrator, s2.view_samples, s2.rule) == (c.setting["integrator"], c.setting["view_samples"], c.setting["rule"])
     assert model.view_samples == c.setting["view_samples"] and s2.accuracy == "de=1"
@@ -223,7 +223,7 @@ def test_render_accuracy_refusals(tmp_path, acc, match):
 def test_fit_accuracy_auto_end_to_end(tmp_path, shipped):
     """``skyfit fit --accuracy auto`` on a rendered EXR: the fit runs with the choice for a third of the
     data's noise, records it in RESULT.json's settings, and recovers the exposure."""
-    from skyfit.fit import run as R
+    from skyfit.fit import problem as R
 
     n = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -241,7 +241,7 @@ def test_fit_accuracy_auto_end_to_end(tmp_path, shipped):
         torch.set_num_threads(n)
     res = json.loads(out.read_text())
     s = R.fit_settings({"accuracy": "auto"})
-    obs = R._load([sky], s, None, None)
+    obs = R.load_data([sky], s, None, None)
     over, c = fit_overrides("auto", obs, dtype="float64", frontier=shipped)
     rel_sigma = np.median((obs[0].sigma / obs[0].values)[obs[0].mask].numpy())
     assert c.tolerance.metric == "rel" and c.tolerance.value == pytest.approx(rel_sigma / 3, rel=1e-9)

@@ -2,15 +2,18 @@
 from .config import ConfigError, atmosphere_from_config, load_atmosphere, load_yaml, spectral_tables
 from .params import MIE_PHASES, Atmosphere, angstrom_extinction, rayleigh_power_law
 from .solar import solar_irradiance
+from .wavelengths import DEFAULT_WAVELENGTHS, parse_wavelengths
 
 __all__ = [
     "Atmosphere",
     "ConfigError",
+    "DEFAULT_WAVELENGTHS",
     "MIE_PHASES",
     "angstrom_extinction",
     "atmosphere_from_config",
     "load_atmosphere",
     "load_yaml",
+    "parse_wavelengths",
     "rayleigh_power_law",
     "solar_irradiance",
     "spectral_tables",

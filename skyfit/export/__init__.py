@@ -1,4 +1,4 @@
 """LUT writers and readers: Bruneton tables as OpenEXR or npz for shaders (docs/luts.md)."""
-from .lut import FORMATS, LUT_VERSION, LutError, atmosphere_from_result, export_luts, load_luts
+from .lut import FORMATS, LUT_VERSION, LutError, export_luts, load_luts
 
-__all__ = ["FORMATS", "LUT_VERSION", "LutError", "atmosphere_from_result", "export_luts", "load_luts"]
+__all__ = ["FORMATS", "LUT_VERSION", "LutError", "export_luts", "load_luts"]

@@ -301,18 +301,3 @@ def load_luts(lut_dir: str | Path, dtype: torch.dtype = torch.float64, device="c
 
 
 # -- RESULT.json -> Atmosphere -------------------------------------------------------------
-def atmosphere_from_result(res: dict, wavelengths_nm, dtype=torch.float64) -> Atmosphere:
-    """The fitted atmosphere of a RESULT.json dict (from :func:`skyfit.fit.run.read_result`).
-
-    As ``skyfit evaluate`` rebuilds it: the result's config on ``wavelengths_nm``, moved only in
-    the parameters that were fitted or set in ``fit.initial`` (nuisance parameters ignored).
-    """
-    from ..fit.parameters import PARAMETERS, Parameterisation
-    from ..fit.run import _base_atmosphere
-
-    base, _ = _base_atmosphere(res["config"], np.asarray(wavelengths_nm, float), [], dtype)
-    fitted = set(res.get("free", [])) | set((res.get("settings") or {}).get("initial", {}) or {})
-    values = {n: v for n, v in res["parameters"].items() if not PARAMETERS[n].nuisance and n in fitted}
-    param = Parameterisation(base, [], 1, None, values)
-    with torch.no_grad():
-        return param.atmosphere(param.to_physical(param.initial_vector(dtype)))

@@ -12,7 +12,7 @@ Data flow (docs/fitting.md)::
 from .data import DataError, Observation, expand_data_paths, load_observations, observation_from_exr, observation_from_kider
 from .losses import LOSS_PRESETS, Loss, horizon_mask, make_loss, rho_cauchy, rho_huber, rho_squared, saturation_mask, sun_disc_mask
 from .model import FitProblem, SkyModel, channel_matrix, observation_metrics
-from .optimise import FitOptions, FitResult, fit
+from .optimise import FitOptions, OptimiseResult, fit
 from .parameters import (
     ATMOSPHERE_PARAMETERS,
     DEFAULT_PER_OBSERVATION,
@@ -30,7 +30,7 @@ __all__ = [
     "FitError",
     "FitOptions",
     "FitProblem",
-    "FitResult",
+    "OptimiseResult",
     "LOSS_PRESETS",
     "Loss",
     "NUISANCE",

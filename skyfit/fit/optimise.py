@@ -69,7 +69,7 @@ class FitOptions:
 
 
 @dataclasses.dataclass
-class FitResult:
+class OptimiseResult:
     """Outcome of :func:`fit`.
 
     Attributes:
@@ -204,7 +204,7 @@ def _run_start(problem: FitProblem, x0: Tensor, opt: FitOptions, bar, label: str
     }
 
 
-def fit(problem: FitProblem, options: FitOptions | None = None, x0: Tensor | None = None) -> FitResult:
+def fit(problem: FitProblem, options: FitOptions | None = None, x0: Tensor | None = None) -> OptimiseResult:
     """Minimise ``problem.objective`` over the free parameters (module docstring).
 
     Args:
@@ -213,7 +213,7 @@ def fit(problem: FitProblem, options: FitOptions | None = None, x0: Tensor | Non
         x0: first start (default: the parameterisation's current values).
 
     Returns:
-        :class:`FitResult` of the best start.
+        :class:`OptimiseResult` of the best start.
     """
     opt = options or FitOptions()
     param = problem.param
@@ -253,7 +253,7 @@ def fit(problem: FitProblem, options: FitOptions | None = None, x0: Tensor | Non
     conv = dict(win["convergence"])
     conv.update({"start": best, "n_starts": len(runs), "seconds_total": time.perf_counter() - t0,
                  "evaluations_total": sum(r["convergence"]["evaluations"] for r in runs)})
-    return FitResult(
+    return OptimiseResult(
         x=win["x"], loss=win["loss"], parameters=param.physical_dict(win["x"]), free=list(param.free), convergence=conv,
         starts=[{"initial": param.free_dict(r["x_start"]), "final": param.free_dict(r["x"]), "loss": r["loss"],
                  "convergence": r["convergence"]} for r in runs],

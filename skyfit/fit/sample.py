@@ -52,7 +52,10 @@ from torch import Tensor
 
 from .batched import BatchedLikelihood, per_walker_loglike
 from .model import FitProblem
-from .parameters import PARAMETERS, FitError
+from .laplace import laplace_summary
+from .parameters import NUISANCE, PARAMETERS, FitError
+from .problem import fit_settings, prepare
+from .results import read_result
 from .report import dumps, write_text_atomic
 from ..io.atomic import atomic_path
 
@@ -805,24 +808,16 @@ def build_problem(data, config: dict, init: dict, init_path, kider_site: dict | 
     ``view_samples``, ``rule`` replace the renderer's (a cheaper sampler); ``max_samples`` keeps every
     k-th image pixel (the posterior is then that subsample's: wider than the full data's).
     """
-    from . import run as R
-    from .parameters import NUISANCE, Parameterisation
-
     try:
-        s = R.fit_settings(init.get("settings"), {"integrator": integrator, "view_samples": view_samples, "rule": rule,
-                                                  "max_samples": max_samples})
+        s = fit_settings(init.get("settings"), {"integrator": integrator, "view_samples": view_samples, "rule": rule,
+                                                "max_samples": max_samples, "accuracy": accuracy})
     except TypeError as e:
         raise SampleError(f"{init_path}: malformed fit settings ({e})") from None
-    loss = R.make_loss(s.loss)
-    model = R._model(s)
-    observations = R._load(data, s, kider_site, s.max_samples)
-    if accuracy:  # the sampler's own tolerance (skyfit.render.auto) on these observations
-        s, model = R._resolve_accuracy(dataclasses.replace(s, accuracy=accuracy), observations)
+    if not accuracy:  # the fit's own accuracy was resolved into its renderer fields when it ran
+        s = dataclasses.replace(s, accuracy=None)
+    prep = prepare(data, config, s, kider_site=kider_site)
+    s, observations = prep.settings, prep.observations
     free = list(init["free"])
-    per = init.get("per_observation")
-    dtype = torch.float64 if s.dtype == "float64" else torch.float32
-    lam = R.model_wavelengths(observations, s.wavelengths)
-    base, base_dist = R._base_atmosphere(config, lam, observations, dtype)
     pars = init["parameters"]
     keep = set(free) | set((s.initial or {}).keys()) | set(NUISANCE)
     values = {}
@@ -832,8 +827,8 @@ def build_problem(data, config: dict, init: dict, init_path, kider_site: dict | 
             if isinstance(v, list) and len(v) != len(observations):
                 raise SampleError(f"{init_path}: {n} has {len(v)} values for {len(observations)} observation(s) of DATA")
             values[n] = v
-    param = Parameterisation(base, free, len(observations), per, values)
-    problem = R.FitProblem(param, model, observations, loss, base_sun_distance_au=base_dist)
+    problem = prep.problem(free, init.get("per_observation"), values)
+    param, dtype = problem.param, s.torch_dtype
     fv = init.get("fitted_vector") or {}
     if all(n in fv for n in param.names):
         x0 = torch.tensor([float(fv[n]) for n in param.names], dtype=dtype)
@@ -845,9 +840,6 @@ def build_problem(data, config: dict, init: dict, init_path, kider_site: dict | 
 def run_sample(data, config: dict, init_path, out_dir, *, overrides: dict | None = None, kider_site: dict | None = None,
                resume: bool = False, progress: bool = False, plots: bool = True, laplace: bool = True) -> dict:
     """``skyfit sample``: rebuild the fit's problem, sample it, write DIR/chain.h5, summary.json and plots."""
-    from .laplace import laplace_summary
-    from .run import read_result
-
     init = read_result(init_path)
     if not init.get("free"):
         raise SampleError(f"{init_path}: the fit has no free parameter to sample")

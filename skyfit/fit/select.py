@@ -75,8 +75,10 @@ from ..atmosphere import Atmosphere
 from .data import Observation
 from .losses import Loss
 from .model import FitProblem, SkyModel
-from .optimise import FitOptions, FitResult, fit
+from .optimise import FitOptions, OptimiseResult, fit
 from .parameters import NUISANCE, ORIENTATION, PARAMETERS, FitError, Parameterisation
+from .problem import atmosphere_config, fit_settings, initial_values, prepare
+from .results import check_result_path, write_result
 
 SIGMA_MODES = ("scaled", "known")
 MIN_DELTA_BIC: float = 2.0
@@ -354,7 +356,7 @@ class Ladder:
 
     # -- climbing -----------------------------------------------------------------------
     def run(self, progress: bool = False) -> dict:
-        """Fit the ladder; the selection report (module docstring) with ``_best`` = (state, FitResult, problem).
+        """Fit the ladder; the selection report (module docstring) with ``_best`` = (state, OptimiseResult, problem).
 
         Forward: each rung on top of the best model so far. Backward: then each component of
         the best model is removed in turn (warm-started from it) while that lowers BIC, so that
@@ -367,7 +369,7 @@ class Ladder:
 
             bar = tqdm(total=len(self.rungs), desc="select", unit="rung", leave=False)
         self._rows: list[dict] = []
-        self._fits: dict[str, tuple[_State, FitResult, FitProblem]] = {}
+        self._fits: dict[str, tuple[_State, OptimiseResult, FitProblem]] = {}
         self._best: str | None = None
         self._best_bic = math.inf
         start = _State(free=tuple(self.nuisance_free))  # the first rung's changes define the starting model
@@ -497,7 +499,7 @@ class Ladder:
             return f"the scene is outside the flat-Earth regime: {str(e).splitlines()[0]}"
         return None
 
-    def _score(self, st: _State, res: FitResult, problem: FitProblem) -> dict:
+    def _score(self, st: _State, res: OptimiseResult, problem: FitProblem) -> dict:
         k = problem.param.size + (1 if self.sigma == "scaled" else 0)
         nll, s = gaussian_nll(res.loss, self.n_train, self.log_sigma_train, self.sigma)
         out = {"k": k, "n": self.n_train, "loss": res.loss, "nll": nll, "noise_scale": s,
@@ -561,9 +563,7 @@ def format_table(report: dict) -> str:
 def selected_config(config: dict, components: Sequence[str]) -> dict:
     """The config of the chosen model: aerosol (angstrom_beta 0) and ozone removed when the ladder dropped them,
     so that ``skyfit evaluate`` rebuilds the chosen atmosphere."""
-    from .run import RUN_SECTIONS
-
-    cfg = copy.deepcopy({k: v for k, v in config.items() if k not in RUN_SECTIONS})
+    cfg = atmosphere_config(config)
     if "mie" not in components:
         mie = dict(cfg.get("mie") or {})
         mie.pop("extinction_550", None)
@@ -588,34 +588,21 @@ def run_select(data, config: dict, out, *, overrides: dict | None = None, config
     (exposure, sun offsets) are used: the ladder frees the atmosphere's. The config's ``orders``
     is ignored (the ``multiple`` rung decides it); its ``multiple`` method and LUT sizes are kept.
     """
-    from .losses import make_loss
-    from .run import (_base_atmosphere, _initial_values, _load, _model, _resolve_accuracy, check_out_and_config,
-                      fit_settings, model_wavelengths, write_result)
-
     t0 = time.perf_counter()
-    out = check_out_and_config(out, config, config_source)
-    s = fit_settings(config.get("fit"), overrides)
-    loss = make_loss(s.loss)
-    model = dataclasses.replace(_model(s), orders=1)
-    observations = _load(data, s, kider_site, s.max_samples)
-    if s.accuracy:  # the cheapest renderer setting meeting it (run_fit's rule), single scattering below 'multiple'
-        s, model = _resolve_accuracy(s, observations)
-        model = dataclasses.replace(model, orders=1)
+    out = check_result_path(out)
+    prep = prepare(data, config, fit_settings(config.get("fit"), overrides), kider_site=kider_site, orders=1)
+    s, observations = prep.settings, prep.observations
     rings = any("ring" in o.metadata for o in observations)
     nuisance = [n for n in (s.free or []) if n in SELECT_NUISANCE] if s.free is not None else \
         ["exposure"] + (["sun_azimuth_offset"] if rings else [])
     per = s.per_observation
-    per_eff = per if per is not None else [n for n in NUISANCE if n != "noise_scale"]
-    dtype = torch.float64 if s.dtype == "float64" else torch.float32
-    lam = model_wavelengths(observations, s.wavelengths)
-    base, base_dist = _base_atmosphere(config, lam, observations, dtype)
     options = FitOptions(starts=s.starts, seed=s.seed, adam_steps=s.adam_steps, max_iter=s.max_iter,
                          grad_tol=s.grad_tol, rel_tol=s.rel_tol)
     sigma = getattr(s, "select_sigma", "scaled")
     heldout = getattr(s, "select_heldout", HELDOUT_DEFAULT)
-    ladder = Ladder(base, model, observations, loss, nuisance_free=nuisance, per_observation=per,
-                    initial=_initial_values(s, observations, nuisance, per_eff), options=options, sigma=sigma,
-                    heldout=heldout, seed=s.seed, base_sun_distance_au=base_dist)
+    ladder = Ladder(prep.base, prep.model, observations, prep.loss, nuisance_free=nuisance, per_observation=per,
+                    initial=initial_values(s, observations, nuisance, per), options=options, sigma=sigma,
+                    heldout=heldout, seed=s.seed, base_sun_distance_au=prep.base_dist)
     report = ladder.run(progress=progress)
     st, res_train, _ = report["_best"]
     # the chosen model on every pixel, warm-started from its fit on the training pixels
@@ -626,5 +613,5 @@ def run_select(data, config: dict, out, *, overrides: dict | None = None, config
                     initial={k: v for k, v in (s.initial or {}).items() if k in st.free})
     return write_result(problem, res, out, command="fit --select", settings=settings,
                         config=selected_config(config, st.components()), config_source=config_source,
-                        base_dist=base_dist, dtype=s.dtype, t0=t0, laplace=laplace, plots=plots,
+                        base_dist=prep.base_dist, dtype=s.dtype, t0=t0, laplace=laplace, plots=plots,
                         extra={"selection": strip_private(report)})

@@ -20,6 +20,7 @@ exact column of the ozone tent layer along a segment.
 from __future__ import annotations
 
 import importlib
+import inspect
 
 from .base import ColumnFn, OpticalDepthIntegrator
 from .ozone import ozone_column
@@ -56,4 +57,50 @@ def make_integrator(name: str, **settings) -> OpticalDepthIntegrator:
         raise ValueError(f"bad settings for integrator {name!r}: {e}") from None
 
 
-__all__ = ["INTEGRATORS", "ColumnFn", "OpticalDepthIntegrator", "integrator_class", "make_integrator", "ozone_column"]
+def parse_integrator(text: str) -> OpticalDepthIntegrator:
+    """``NAME`` or ``NAME:key=value,key=value`` -> integrator instance (ValueError on a bad spec).
+
+    A value ``v1/v2`` is a list, one per layer (Rayleigh/Mie), e.g. the per-layer
+    Taylor pairs of ``skyfit calibrate-integrator``: ``taylor:a=0.367/0.424,b=0.359/0.116``.
+    """
+
+    def number(val: str):
+        val = val.strip()
+        try:
+            return int(val) if val.lstrip("-").isdigit() else float(val)
+        except ValueError:
+            return val
+
+    name, _, opts = text.partition(":")
+    settings: dict = {}
+    for item in filter(None, opts.split(",")):
+        key, eq, val = item.partition("=")
+        if not eq:
+            raise ValueError(f"integrator option must be key=value, got {item!r}")
+        settings[key.strip()] = [number(v) for v in val.split("/")] if "/" in val else number(val)
+    return make_integrator(name.strip(), **settings)
+
+
+def integrator_from_spec(spec: str | dict) -> OpticalDepthIntegrator:
+    """An integrator from a spec string (:func:`parse_integrator`) or a settings dict with ``name``
+    (as ``integrator.settings()`` and RESULT.json's ``integrator`` write it; unknown keys are ignored)."""
+    if not isinstance(spec, dict):
+        return parse_integrator(str(spec))
+    d = dict(spec)
+    name = d.pop("name", None)
+    if name is None:
+        raise ValueError("integrator settings lack a name")
+    accepted = set(inspect.signature(integrator_class(name).__init__).parameters) - {"self"}
+    return make_integrator(name, **{k: v for k, v in d.items() if k in accepted})
+
+
+__all__ = [
+    "INTEGRATORS",
+    "ColumnFn",
+    "OpticalDepthIntegrator",
+    "integrator_class",
+    "integrator_from_spec",
+    "make_integrator",
+    "ozone_column",
+    "parse_integrator",
+]

@@ -1,0 +1,150 @@
+"""Fit results in one place: the RESULT.json dict (CONTRACT.md), its reader and writer, and result -> model.
+
+``skyfit fit`` writes what :func:`result_dict` builds; ``evaluate``, ``export-lut``,
+``sample --init``, the demo and :func:`skyfit.load_result` read it back with
+:func:`read_result` and rebuild the renderer (:func:`model_from_result`) and the
+fitted atmosphere (:func:`atmosphere_from_result`) from it.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..atmosphere import Atmosphere
+from ..transmittance import integrator_from_spec
+from .laplace import laplace_summary
+from .model import FitProblem, SkyModel
+from .optimise import OptimiseResult
+from .parameters import PARAMETERS, FitError, Parameterisation
+from .problem import DTYPES, RUN_SECTIONS, base_atmosphere
+from .report import dumps, plot_all, write_text_atomic
+
+RESULT_VERSION = 1
+REQUIRED_RESULT_KEYS = ("parameters", "free", "integrator", "config", "model")
+
+
+def result_dict(problem: FitProblem, res: OptimiseResult, *, command: str, settings: dict, config: dict,
+                config_source: str, base_dist: float, dtype: str, seconds: float, laplace: bool = False,
+                extra: dict | None = None) -> dict:
+    """RESULT.json's content for a finished fit (CONTRACT.md), with the Laplace covariance when asked."""
+    param, model = problem.param, problem.model
+    phys = param.to_physical(res.x)
+    result = {
+        "skyfit_result": RESULT_VERSION,
+        "command": command,
+        "parameters": res.parameters,
+        "units": param.units(),
+        "derived": param.derived(phys),
+        "free": res.free,
+        "per_observation": list(param.per_observation),
+        "fitted_vector": {n: float(v) for n, v in zip(param.names, res.x.tolist())},
+        "integrator": {**model.integrator.settings(), **model.settings()},
+        "model": {**model.settings(), "wavelengths_nm": param.base.wavelengths.cpu().tolist(), "base_sun_distance_au": base_dist,
+                  "dtype": dtype, "kinds": sorted({o.kind for o in problem.observations})},
+        "loss": problem.loss.settings(),
+        "metrics": problem.metrics(res.x),
+        "data": [o.summary() for o in problem.observations],
+        "convergence": {**res.convergence, "starts": res.starts},
+        **(extra or {}),
+        "settings": settings,
+        "config": {k: v for k, v in config.items() if k not in RUN_SECTIONS},
+        "config_source": config_source,
+        "seconds": seconds,
+    }
+    if laplace:
+        result["laplace"] = laplace_summary(problem, res.x)
+    return result
+
+
+def write_result(problem: FitProblem, res: OptimiseResult, out: Path, *, command: str, settings: dict, config: dict,
+                 config_source: str, base_dist: float, dtype: str, t0: float, laplace: bool, plots: bool,
+                 extra: dict | None = None) -> dict:
+    """RESULT.json of a finished fit written atomically to ``out`` (plots beside it when asked); the dict."""
+    out = Path(out)
+    result = result_dict(problem, res, command=command, settings=settings, config=config, config_source=config_source,
+                         base_dist=base_dist, dtype=dtype, seconds=time.perf_counter() - t0, laplace=laplace, extra=extra)
+    if plots:
+        with torch.no_grad():
+            preds = problem.predict(res.x)
+        result["plots"] = plot_all(problem.observations, preds, out.parent, out.stem)
+    result["seconds"] = time.perf_counter() - t0
+    save_result(result, out)
+    return result
+
+
+def check_result_path(out: str | Path) -> Path:
+    """``out`` as a Path; FitError unless it names a .json file."""
+    out = Path(out)
+    if out.suffix.lower() != ".json":
+        raise FitError(f"--out must name a .json file, got {out}")
+    return out
+
+
+def save_result(result: dict, out: str | Path) -> None:
+    """Write a result dict as RESULT.json, atomically (strict JSON: NaN becomes null)."""
+    write_text_atomic(Path(out), dumps(result))
+
+
+def check_result(res, where: str) -> dict:
+    """``res`` when it is a skyfit fit result dict; FitError naming ``where`` otherwise."""
+    if not isinstance(res, dict):
+        raise FitError(f"{where}: a RESULT.json must hold a JSON object")
+    missing = [k for k in REQUIRED_RESULT_KEYS if k not in res]
+    if missing:
+        raise FitError(f"{where}: not a skyfit fit result (missing {', '.join(missing)})")
+    if not isinstance(res["parameters"], dict) or not isinstance(res["config"], dict) or not isinstance(res["model"], dict):
+        raise FitError(f"{where}: malformed result (parameters, config and model must be objects)")
+    unknown = [k for k in res["parameters"] if k not in PARAMETERS]
+    if unknown:
+        raise FitError(f"{where}: unknown parameter(s) {unknown}")
+    return res
+
+
+def read_result(path: str | Path) -> dict:
+    """A RESULT.json written by ``skyfit fit`` (or :meth:`skyfit.FitResult.save`); FitError naming the file otherwise."""
+    p = Path(path)
+    if not p.is_file():
+        raise FitError(f"result file not found: {p}")
+    try:
+        res = json.loads(p.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise FitError(f"{p}: not a readable JSON result ({type(e).__name__}: {e})".splitlines()[0]) from None
+    return check_result(res, str(p))
+
+
+def model_from_result(res: dict) -> SkyModel:
+    """The SkyModel a RESULT.json was fitted with (its ``integrator`` and ``model`` entries)."""
+    m = res["model"]  # SkyModel.settings() wrote the multiple-scattering fields only for orders > 1
+    kw = {k: m[k] for k in ("multiple", "lut_size", "lut_directions", "lut_samples", "table_sizes") if m.get(k) is not None}
+    return SkyModel(integrator_from_spec(res["integrator"]), orders=int(m.get("orders", 1)),
+                    view_samples=int(m.get("view_samples", 32)), rule=m.get("rule", "trapezoid"),
+                    ground=bool(m.get("ground", True)), **kw)
+
+
+def fitted_atmosphere_values(res: dict) -> dict:
+    """The atmosphere parameters a result moved away from its config: those fitted or set in ``fit.initial``."""
+    fitted = set(res.get("free", [])) | set((res.get("settings") or {}).get("initial", {}) or {})
+    return {n: v for n, v in res["parameters"].items() if not PARAMETERS[n].nuisance and n in fitted}
+
+
+def result_dtype(res: dict) -> torch.dtype:
+    """The dtype a result was fitted in (float64 when it does not say)."""
+    return DTYPES.get(str((res.get("model") or {}).get("dtype", "float64")), torch.float64)
+
+
+def atmosphere_from_result(res: dict, wavelengths_nm=None, dtype=torch.float64, device="cpu") -> Atmosphere:
+    """The fitted atmosphere of a RESULT dict (from :func:`read_result`), on ``wavelengths_nm`` [nm]
+    (default: the fit's model wavelengths).
+
+    As ``skyfit evaluate`` rebuilds it: the result's config, moved only in the parameters that
+    were fitted or set in ``fit.initial`` (nuisance parameters ignored).
+    """
+    lam = np.asarray(res["model"]["wavelengths_nm"] if wavelengths_nm is None else wavelengths_nm, float)
+    base, _ = base_atmosphere(res["config"], lam, [], dtype, device)
+    param = Parameterisation(base, [], 1, None, fitted_atmosphere_values(res))
+    with torch.no_grad():
+        return param.atmosphere(param.to_physical(param.initial_vector(dtype, device)))
