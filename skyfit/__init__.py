@@ -1,7 +1,48 @@
 """skyfit: fit a physically based atmosphere to measured skies.
 
-Data flow: atmosphere (parameters) -> transmittance (optical depth integrators)
--> scattering (phase functions, single scattering) -> render (directions in,
-radiance and colour out) -> camera (fisheye) -> io (OpenEXR).
+The Python API (:mod:`skyfit.api`; README "Python API")::
+
+    atm = skyfit.load_atmosphere("earth")
+    sky = skyfit.render(atm, skyfit.FisheyeCamera(64), sun=(60, 135))
+    result = skyfit.fit(skyfit.Observation.from_arrays(sky.rgb, camera, sun=(60, 135)), "earth")
+
+Layers, lowest first (docs/architecture.md): geometry -> atmosphere -> transmittance ->
+scattering -> render -> camera -> io -> fit -> export -> api -> tools -> cli.
 """
 __version__ = "0.1.0"
+
+from .api import (  # noqa: E402  (after __version__, which modules below read)
+    ACCURATE,
+    FitResult,
+    Sky,
+    export_luts,
+    fit,
+    load_atmosphere,
+    load_result,
+    render,
+    resolve_device,
+    sample,
+    sun_vector,
+)
+from .atmosphere import Atmosphere  # noqa: E402
+from .camera import FisheyeCamera, sun_position  # noqa: E402
+from .fit import Observation  # noqa: E402
+
+__all__ = [
+    "ACCURATE",
+    "Atmosphere",
+    "FisheyeCamera",
+    "FitResult",
+    "Observation",
+    "Sky",
+    "__version__",
+    "export_luts",
+    "fit",
+    "load_atmosphere",
+    "load_result",
+    "render",
+    "resolve_device",
+    "sample",
+    "sun_position",
+    "sun_vector",
+]

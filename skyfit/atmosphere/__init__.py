@@ -1,5 +1,5 @@
 """Atmosphere parameters, constants with sources, and config loading."""
-from .config import ConfigError, atmosphere_from_config, load_atmosphere, load_yaml, spectral_tables
+from .config import ConfigError, atmosphere_from_config, load_atmosphere, load_yaml, read_config, spectral_tables
 from .params import MIE_PHASES, Atmosphere, angstrom_extinction, rayleigh_power_law
 from .solar import solar_irradiance
 from .wavelengths import DEFAULT_WAVELENGTHS, parse_wavelengths
@@ -15,6 +15,7 @@ __all__ = [
     "load_yaml",
     "parse_wavelengths",
     "rayleigh_power_law",
+    "read_config",
     "solar_irradiance",
     "spectral_tables",
 ]

@@ -14,6 +14,8 @@ Config layout (all SI; see configs/earth.yaml for a commented example)::
 """
 from __future__ import annotations
 
+import copy
+
 import functools
 import json
 import math
@@ -218,22 +220,34 @@ def atmosphere_from_config(
             sun_angular_radius=_get(sun, "angular_radius_rad", C.SUN_ANGULAR_RADIUS_RAD, "sun"),
             mie_phase=str(mie.get("phase", "cornette_shanks")),
             name=str(cfg.get("name", "atmosphere")),
+            config=copy.deepcopy(cfg),
         )
     except ValueError as e:
         raise ConfigError(str(e)) from None
 
 
-def load_atmosphere(
-    path_or_name: str | Path, wavelengths_nm, dtype=torch.float64, device="cpu", sun_distance_au: float | None = None
-) -> Atmosphere:
-    """Load a config by path, or by the name of a shipped config (``earth``, ``mars`` ...)."""
-    p = Path(path_or_name)
+SHIPPED_CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+"""The configs shipped with skyfit (earth, earth_clear_sky_eval, earth_hazy, kider, mars)."""
+
+
+def read_config(config: str | Path | dict) -> tuple[dict, str]:
+    """A config dict and where it came from: a dict as is, a YAML path, or the name of a shipped config."""
+    if isinstance(config, dict):
+        return config, "<dict>"
+    p = Path(config)
     if not p.exists() and not p.suffix:
-        shipped = Path(__file__).resolve().parents[1] / "configs" / f"{path_or_name}.yaml"
+        shipped = SHIPPED_CONFIGS / f"{config}.yaml"
         if shipped.is_file():
             p = shipped
-    cfg = load_yaml(p)
+    return load_yaml(p), str(p)
+
+
+def load_atmosphere(
+    config: str | Path | dict, wavelengths_nm, dtype=torch.float64, device="cpu", sun_distance_au: float | None = None
+) -> Atmosphere:
+    """An atmosphere from a config (a path, the name of a shipped config: ``earth``, ``mars`` ..., or a dict)."""
+    cfg, source = read_config(config)
     try:
         return atmosphere_from_config(cfg, wavelengths_nm, dtype, device, sun_distance_au)
     except ConfigError as e:  # name the file (CONTRACT.md: the message names the problem and the file)
-        raise ConfigError(f"config {p}: {e}") from None
+        raise ConfigError(f"config {source}: {e}") from None

@@ -55,6 +55,9 @@ class Atmosphere:
     sun_angular_radius: float = C.SUN_ANGULAR_RADIUS_RAD
     mie_phase: str = "cornette_shanks"
     name: str = "atmosphere"
+    config: dict | None = dataclasses.field(default=None, repr=False, compare=False)
+    """The config this atmosphere was built from (None when built by hand); :func:`skyfit.fit` rebuilds it on
+    the data's wavelengths, after checking that the atmosphere still equals it."""
 
     def __post_init__(self) -> None:
         self.validate()
@@ -155,7 +158,7 @@ class Atmosphere:
                 return x.item() if x.ndim == 0 else x.tolist()
             return x
 
-        return {f.name: val(getattr(self, f.name)) for f in dataclasses.fields(self)}
+        return {f.name: val(getattr(self, f.name)) for f in dataclasses.fields(self) if f.name != "config"}
 
 
 def angstrom_extinction(wavelengths_nm: Tensor, beta: float | Tensor, alpha: float | Tensor, scale_height_m) -> Tensor:

@@ -20,7 +20,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..camera import FisheyeCamera, parse_location, parse_time, sun_position
 from ..camera.fisheye import zenith_azimuth_to_enu
+from ..io import is_kider_capture_name, kider, read_exr
 from .losses import horizon_mask, saturation_mask, sun_disc_mask
 
 
@@ -144,6 +146,119 @@ class Observation:
             kw[f.name] = v
         return Observation(**kw)
 
+    @classmethod
+    def from_arrays(cls, radiance, view, sun=None, *, time: str | None = None, location=None, sigma=None,
+                    sigma_relative: float = 0.01, sigma_absolute: float | None = None, wavelengths=None,
+                    mask=None, min_elevation_deg: float = 0.0, sun_disc_deg: float = 2.0,
+                    altitude_m: float = 0.0, name: str = "array", dtype=torch.float64) -> "Observation":
+        """An observation from arrays in memory: an image and its camera, or values along view directions.
+
+        Args:
+            radiance: with a camera, an image of shape (H, W, C); with directions, shape (N, C).
+                C = 3 is linear sRGB (``R, G, B``, CONTRACT.md) unless ``wavelengths`` are given;
+                with ``wavelengths`` (shape (C,) [nm]) the channels are spectral radiance.
+                [W/(m^2 sr nm) or linear sRGB of XYZ with 683 lm/W]
+            view: a :class:`skyfit.camera.FisheyeCamera` (its field of view masks the image), or
+                unit view vectors East-North-Up, shape (N, 3). [1]
+            sun: ``(zenith_deg, azimuth_deg)`` (azimuth clockwise from North) [deg]; or None with
+                ``time`` (ISO 8601 with UTC offset) and ``location`` ("LAT,LON[,ELEV]" or a tuple), by NREL SPA.
+            sigma: standard deviation per value, shape of ``radiance``; None: the noise model
+                hypot(sigma_relative x value, sigma_absolute), sigma_absolute defaulting to 1e-3 x the
+                median used value.
+            mask: bool, shape (H, W) or (N,): values to use (True = sky).
+            min_elevation_deg, sun_disc_deg: horizon and sun masks, as for EXR images. [deg]
+            altitude_m: observer height above the ground. [m]
+            name: label in results.
+            dtype: working dtype.
+
+        Raises:
+            DataError: shapes that do not fit, NaN/Inf or negative used values, no sun, nothing usable.
+        """
+        where = f"observation {name}"
+        values = torch.as_tensor(np.asarray(radiance.detach().cpu() if isinstance(radiance, Tensor) else radiance,
+                                            dtype=np.float64)).to(dtype)
+        if values.ndim not in (2, 3):
+            raise DataError(f"{where}: radiance must have shape (H, W, C) or (N, C), got {tuple(values.shape)}")
+        C = values.shape[-1]
+        if isinstance(view, FisheyeCamera):
+            if values.ndim != 3 or tuple(values.shape[:2]) != tuple(view.shape):
+                raise DataError(f"{where}: radiance of shape {tuple(values.shape)} does not fit the camera's image "
+                                f"{tuple(view.shape)} (H, W, C)")
+            vec, valid = view.pixel_vectors(dtype)
+            vec, valid = vec.reshape(-1, 3), valid.reshape(-1)
+            image_shape = list(view.shape)
+        else:
+            vec = torch.as_tensor(view, dtype=dtype)
+            if values.ndim != 2 or vec.shape != (values.shape[0], 3):
+                raise DataError(f"{where}: directions of shape {tuple(vec.shape)} do not fit radiance of shape "
+                                f"{tuple(values.shape)}: need (N, 3) and (N, C)")
+            valid = torch.isfinite(vec).all(-1)
+            image_shape = None
+        values = values.reshape(-1, C)
+        keep = valid.clone()
+        if mask is not None:
+            m = torch.as_tensor(np.asarray(mask, dtype=bool)).reshape(-1)
+            if m.shape != keep.shape:
+                raise DataError(f"{where}: mask has {m.numel()} entries for {keep.numel()} values")
+            keep &= m
+        dated: dict = {}
+        if sun is None:
+            if time is None or location is None:
+                raise DataError(f"{where}: give the sun as (zenith_deg, azimuth_deg), or time and location")
+            lat, lon, elev = parse_location(location) if isinstance(location, str) else (tuple(location) + (0.0,))[:3]
+            when = parse_time(time)
+            sp = sun_position(when, lat, lon, elev)
+            sz_deg, sa_deg = float(sp.zenith), float(sp.azimuth)
+            dated = {"time": when.isoformat(), "sun_distance_au": float(sp.distance_au),
+                     "location": {"latitude_deg": float(lat), "longitude_deg": float(lon), "elevation_m": float(elev)}}
+        else:
+            try:
+                sz_deg, sa_deg = (float(v) for v in sun)
+            except (TypeError, ValueError):
+                raise DataError(f"{where}: sun must be (zenith_deg, azimuth_deg), got {sun!r}") from None
+        if not (math.isfinite(sz_deg) and math.isfinite(sa_deg)):
+            raise DataError(f"{where}: sun position is not finite")
+        if sz_deg > 90.0:
+            raise DataError(f"{where}: the sun is below the horizon (zenith {sz_deg:.2f} deg); night skies are not fitted")
+        sz, sa = torch.tensor(math.radians(sz_deg), dtype=dtype), torch.tensor(math.radians(sa_deg), dtype=dtype)
+        safe = torch.where(keep[:, None], vec, torch.tensor([0.0, 0.0, 1.0], dtype=dtype))
+        keep &= horizon_mask(safe, min_elevation_deg)
+        keep &= sun_disc_mask(safe, zenith_azimuth_to_enu(sz, sa), sun_disc_deg)
+        idx = torch.nonzero(keep).reshape(-1)
+        if idx.numel() == 0:
+            raise DataError(f"{where}: no usable value (field of view, mask, horizon and sun disc leave none)")
+        vals = values[idx]
+        if sigma is None:
+            absolute = 1e-3 * float(vals.median()) if sigma_absolute is None else float(sigma_absolute)
+            check_noise_model(sigma_relative, absolute, where)
+            if absolute == 0:
+                absolute = 1e-3 * float(vals[vals > 0].median()) if bool((vals > 0).any()) else 1e-12
+            sig = noise_sigma(vals, sigma_relative, absolute)
+            sigma_model = {"relative": sigma_relative, "absolute": absolute}
+        else:
+            s_all = torch.as_tensor(np.asarray(sigma.detach().cpu() if isinstance(sigma, Tensor) else sigma,
+                                               dtype=np.float64)).to(dtype)
+            if s_all.numel() != values.numel():
+                raise DataError(f"{where}: sigma has shape {tuple(s_all.shape)}, radiance {tuple(values.shape)}")
+            sig, sigma_model = s_all.reshape(-1, C)[idx], "given"
+        if wavelengths is None:
+            if C != 3:
+                raise DataError(f"{where}: {C} channels without wavelengths; give wavelengths for spectral data")
+            kind, channels, lam = "rgb", ("R", "G", "B"), None
+        else:
+            lam = torch.as_tensor(np.asarray(wavelengths, dtype=np.float64)).to(dtype).reshape(-1)
+            if lam.numel() != C:
+                raise DataError(f"{where}: {lam.numel()} wavelengths for {C} channels")
+            kind, channels = "spectral", tuple(f"L{float(v):g}" for v in lam)
+        meta = {"mask": {"used": int(idx.numel()), "min_elevation_deg": min_elevation_deg, "sun_disc_deg": sun_disc_deg},
+                "sigma_model": sigma_model, "pixel_index": idx}
+        if image_shape is not None:
+            meta.update(image_shape=image_shape, camera=view.metadata())
+        return cls(name=name, source=name, kind=kind, directions=vec[idx], sun_zenith=sz, sun_azimuth=sa, values=vals,
+                   sigma=sig, mask=torch.ones(idx.numel(), dtype=torch.bool), channels=channels, wavelengths=lam,
+                   sun_distance_au=dated.get("sun_distance_au"), altitude_m=float(altitude_m), time=dated.get("time"),
+                   location=dated.get("location"), metadata=meta)
+
     def summary(self) -> dict:
         """JSON-ready description for RESULT.json's ``data``."""
         def deg(t):
@@ -199,9 +314,6 @@ def observation_from_exr(
     Raises:
         DataError / ExrError (ValueErrors) naming the file.
     """
-    from ..camera import FisheyeCamera
-    from ..io import read_exr
-
     path = Path(path)
     chans, meta = read_exr(path)
     if "camera" not in meta:
@@ -316,8 +428,6 @@ def observation_from_kider(
     symmetry axes from the sun azimuth (:func:`skyfit.io.ring_symmetry_azimuths`),
     a starting point for ``sun_azimuth_offset``.
     """
-    from ..io import kider
-
     site = {}
     if latitude is not None:
         site["latitude"] = latitude
@@ -356,8 +466,6 @@ def observation_from_kider(
 # -- dispatch ------------------------------------------------------------------------------
 def expand_data_paths(paths: Sequence[str | Path]) -> list[tuple[str, Path]]:
     """(kind, path) for each DATA argument: an .exr file, a Kider capture folder, or a folder of either."""
-    from ..io import is_kider_capture_name
-
     out: list[tuple[str, Path]] = []
     for p in map(Path, paths):
         if p.is_file():

@@ -23,6 +23,7 @@ from ..transmittance import integrator_from_spec
 from .data import Observation, check_noise_model, expand_data_paths, noise_sigma, observation_from_exr, observation_from_kider
 from .losses import Loss, make_loss
 from .model import FitProblem, SkyModel
+from .optimise import FitOptions
 from .parameters import NUISANCE, FitError, Parameterisation, check_names
 
 DEFAULT_FREE = ("rayleigh_scale", "mie_beta_550", "mie_scale_height", "mie_g", "exposure")
@@ -86,6 +87,11 @@ class FitSettings:
     @property
     def torch_dtype(self) -> torch.dtype:
         return DTYPES[self.dtype]
+
+    def options(self, progress: bool = False) -> FitOptions:
+        """The optimiser's options of these settings."""
+        return FitOptions(starts=self.starts, seed=self.seed, adam_steps=self.adam_steps, max_iter=self.max_iter,
+                          grad_tol=self.grad_tol, rel_tol=self.rel_tol, progress=progress)
 
 
 FIT_SECTION_KEYS = frozenset(f.name for f in dataclasses.fields(FitSettings))

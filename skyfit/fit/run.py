@@ -50,9 +50,7 @@ def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overri
     prep = prepare(data, config, fit_settings(config.get("fit"), overrides), kider_site=kider_site)
     problem = prep.fit_problem()
     s = prep.settings
-    options = FitOptions(starts=s.starts, seed=s.seed, adam_steps=s.adam_steps, max_iter=s.max_iter,
-                         grad_tol=s.grad_tol, rel_tol=s.rel_tol, progress=progress)
-    res = fit(problem, options)
+    res = fit(problem, s.options(progress))
     return write_result(problem, res, out, command="fit", settings=dataclasses.asdict(s), config=config,
                         config_source=config_source, base_dist=prep.base_dist, dtype=s.dtype, t0=t0, laplace=laplace,
                         plots=plots)

@@ -290,7 +290,12 @@ def fit_overrides(accuracy: str, observations: Sequence, orders: int = 1, dtype:
         zen += z.tolist()
         alt += [float(o.altitude_m)] * len(z)
     c = choose(tol, zen, alt, orders=orders, dtype=dtype, frontier=frontier)
-    st = c.setting
+    return setting_fields(c.setting), c
+
+
+def setting_fields(st: dict) -> dict:
+    """A measured setting (a frontier row) as renderer fields of :class:`skyfit.fit.problem.FitSettings`
+    (integrator spec, view_samples, rule; orders, multiple, LUT or table sizes for multiple scattering)."""
     if st["multiple"] == "bruneton":
         # TableSizes fields in order: transmittance mu, r, irradiance mu_s, r (Bruneton 2017's, as measured), scattering.
         out = {"orders": int(st["orders"]), "multiple": "bruneton",
@@ -300,4 +305,4 @@ def fit_overrides(accuracy: str, observations: Sequence, orders: int = 1, dtype:
         if st["multiple"] == "hillaire":
             nh, nm, nd, ns = (int(v) for v in st["hillaire_lut"].split(","))
             out.update(multiple="hillaire", lut_size=[nh, nm], lut_directions=nd, lut_samples=ns)
-    return out, c
+    return out
