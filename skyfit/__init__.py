@@ -46,3 +46,25 @@ __all__ = [
     "sun_position",
     "sun_vector",
 ]
+
+
+def _callable_package(name: str, function):
+    """Make the subpackage ``skyfit.<name>`` callable as ``function``.
+
+    ``skyfit.render(...)`` and ``skyfit.fit(...)`` are the API's verbs, and ``skyfit.render`` /
+    ``skyfit.fit`` are also subpackages (``skyfit.render.colour``, ``import skyfit.fit.sample``).
+    A function bound to the package's name would hide the subpackage from ``import a.b.c as d``
+    and from attribute access; a module whose class has ``__call__`` serves both. No library
+    offers this, hence the few lines here.
+    """
+    import sys
+    import types
+
+    module = sys.modules[f"{__name__}.{name}"]
+    module.__class__ = type(f"_Callable_{name}", (types.ModuleType,),
+                            {"__call__": staticmethod(function), "__wrapped__": function})
+    return module
+
+
+render = _callable_package("render", render)  # noqa: F811  (the subpackage, callable as the API function)
+fit = _callable_package("fit", fit)  # noqa: F811

@@ -25,7 +25,9 @@ from .export import export_luts as _write_luts
 from .fit.data import Observation
 from .fit.model import SkyModel
 from .fit.optimise import fit as _optimise
+from .fit.priors import make_priors
 from .fit.problem import FitSettings, fit_settings, make_model, prepare
+from .fit.sample import sample_posterior
 from .fit.results import (atmosphere_from_result, check_result, model_from_result, read_result, result_dict,
                           save_result)
 from .render.auto import choose, parse_accuracy, setting_fields
@@ -334,10 +336,8 @@ def sample(fit_result: FitResult, *, walkers: int = 32, steps: int = 2000, seed:
 
     Returns:
         The summary: posterior median/percentiles/std per parameter, diagnostics (tau, acceptance,
-        burn-in), Laplace comparison; ``chain`` (steps, walkers, P) when kept in memory.
+        burn-in), Laplace comparison; ``chain_array`` (steps, walkers, P: unconstrained x) when kept in memory.
     """
-    from .fit.sample import make_priors, sample_posterior  # the sampler's optional deps (emcee, h5py) load on use
-
     if fit_result.problem is None:
         raise ValueError("sample needs a FitResult from skyfit.fit (a result read from a file has no data)")
     problem = fit_result.problem
@@ -348,7 +348,7 @@ def sample(fit_result: FitResult, *, walkers: int = 32, steps: int = 2000, seed:
 
 
 def export_luts(source: FitResult | Atmosphere, out_dir: str | Path | None = None, *, orders: int = 4,
-                table_sizes: TableSizes | None = None, wavelengths=None, format: str = "exr", rgb: bool = False,
+                table_sizes: TableSizes | Sequence[int] | None = None, wavelengths=None, format: str = "exr", rgb: bool = False,
                 device: str = "cpu") -> PrecomputedAtmosphere:
     """Bruneton's precomputed tables of a fitted atmosphere (or any Atmosphere), written as LUTs when asked.
 
@@ -356,10 +356,13 @@ def export_luts(source: FitResult | Atmosphere, out_dir: str | Path | None = Non
         source: a :class:`FitResult` (its atmosphere on ``wavelengths``, default the fit's) or an Atmosphere.
         out_dir: a folder for the LUT files (docs/luts.md); None: only return the tables.
         orders: scattering orders in the tables.
-        table_sizes: :class:`~skyfit.scattering.bruneton_tables.TableSizes` (default Bruneton 2017's).
+        table_sizes: :class:`~skyfit.scattering.bruneton_tables.TableSizes`, or the scattering table's
+            (R, MU, MU_S, NU) as ``skyfit export-lut --table-sizes`` takes them (default Bruneton 2017's).
         format, rgb: ``exr`` or ``npz``; linear sRGB channels instead of one per wavelength.
     """
     atm = source.atmosphere(wavelengths, device=device) if isinstance(source, FitResult) else source
+    if table_sizes is not None and not isinstance(table_sizes, TableSizes):
+        table_sizes = TableSizes.parse(table_sizes)
     with torch.no_grad():
         tables = precompute(atm, orders=orders, sizes=table_sizes or TableSizes())
     if out_dir is not None:

@@ -25,6 +25,7 @@ class UserError(ValueError):
 # The spec parsers live with what they parse and raise ValueError; main() turns that into one line.
 from .atmosphere.wavelengths import DEFAULT_WAVELENGTHS, parse_wavelengths  # noqa: E402
 from .transmittance import parse_integrator  # noqa: E402
+from .atmosphere import read_config  # noqa: E402
 
 
 def _dtype(name: str):
@@ -34,11 +35,13 @@ def _dtype(name: str):
 
 
 def _check_device(device: str) -> str:
-    import torch
+    """``--device``: cpu, cuda, cuda:N or auto -> the device name; one line when it is unknown or absent here."""
+    from .api import resolve_device
 
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise UserError(f"--device {device}: CUDA is not available on this machine")
-    return device
+    try:
+        return str(resolve_device(device))
+    except ValueError as e:
+        raise UserError(f"--device: {e}") from None
 
 
 # -- commands ------------------------------------------------------------------
@@ -78,7 +81,7 @@ def _camera_from_args(args, size, projection):
 
 
 def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projection):
-    from .render import render_fisheye
+    from .camera import render_fisheye
 
     cam = _camera_from_args(args, size, projection)
     extra = {}
@@ -101,14 +104,8 @@ def _table_sizes(text: str | None):
     """``R,MU,MUS,NU`` scattering-table sizes for --orders >= 2 (None: Bruneton 2017's 32,128,32,8)."""
     from .scattering.bruneton_tables import TableSizes
 
-    if not text:
-        return None
     try:
-        r, mu, mus, nu = (int(v) for v in text.split(","))
-    except ValueError:
-        raise UserError(f"--table-sizes must be R,MU,MUS,NU integers, got {text!r}") from None
-    try:
-        return TableSizes(scattering_r=r, scattering_mu=mu, scattering_mu_s=mus, scattering_nu=nu)
+        return TableSizes.parse(text) if text else None
     except ValueError as e:
         raise UserError(f"--table-sizes: {e}") from None
 
@@ -244,8 +241,8 @@ def _apply_accuracy(args, sun_zenith: float):
 
 
 def cmd_demo(args) -> int:
-    """The main job on an embedded default: render, noise, fit, uncertainty, LUTs, truth vs recovered (skyfit.demo)."""
-    from .demo import run_demo
+    """The main job on an embedded default: render, noise, fit, uncertainty, LUTs, truth vs recovered (skyfit.tools.demo)."""
+    from .tools.demo import run_demo
 
     _threads(args)
     summary = run_demo(args.out, quick=args.quick, progress=_progress(args),
@@ -253,18 +250,6 @@ def cmd_demo(args) -> int:
     if args.json:
         print(json.dumps(summary))
     return 0
-
-
-def _read_fit_config(path_or_name: str) -> tuple[dict, str]:
-    """A fit config (atmosphere config plus an optional ``fit:`` section) by path or shipped name."""
-    from .atmosphere import load_yaml
-
-    p = Path(path_or_name)
-    if not p.exists() and not p.suffix:
-        shipped = Path(__file__).resolve().parent / "configs" / f"{path_or_name}.yaml"
-        if shipped.is_file():
-            p = shipped
-    return load_yaml(p), str(p)
 
 
 def _kider_site(args) -> dict:
@@ -299,7 +284,7 @@ def cmd_fit(args) -> int:
     from .fit.run import run_fit
 
     _threads(args)
-    cfg, source = _read_fit_config(args.config)
+    cfg, source = read_config(args.config)
     overrides = {
         "free": args.free, "per_observation": args.per_observation, "integrator": args.integrator, "orders": args.orders,
         "multiple": args.multiple, "view_samples": args.view_samples, "rule": args.rule, "loss": args.loss, "starts": args.starts,
@@ -367,7 +352,7 @@ def cmd_sample(args) -> int:
         raise UserError(f"--steps must be >= 1, got {args.steps}")
     if not Path(args.init).is_file():
         raise UserError(f"--init: result file not found: {args.init}")
-    cfg, source = _read_fit_config(args.config)
+    cfg, source = read_config(args.config)
     overrides = {"walkers": args.walkers, "steps": args.steps, "seed": args.seed, "integrator": args.integrator,
                  "view_samples": args.view_samples, "checkpoint_seconds": args.checkpoint_seconds, "accuracy": args.accuracy,
                  "batched": False if args.no_batch else None}
@@ -466,7 +451,7 @@ def _add_fit_parsers(sub) -> None:
 
 
 def cmd_bench(args) -> int:
-    from .bench import run_bench
+    from .tools.bench import run_bench
 
     if args.threads is not None and args.threads < 1:
         raise UserError(f"--threads must be >= 1, got {args.threads}")
@@ -476,7 +461,7 @@ def cmd_bench(args) -> int:
     if args.study == "integrators":
         run_bench(out=Path(args.out), quick=args.quick, device=device, as_json=args.json, threads=args.threads)
         return 0
-    from .bench_trade import run_trade_study
+    from .tools.trade import run_trade_study
 
     trade = lambda as_json: run_trade_study(out=Path(args.out), quick=args.quick, device=device, as_json=as_json,  # noqa: E731
                                             threads=args.threads, frontier_out=args.frontier_out and Path(args.frontier_out),
@@ -511,8 +496,8 @@ def cmd_calibrate_integrator(args) -> int:
 
     from . import __version__
     from .atmosphere import load_atmosphere
-    from .bench import machine_info
-    from .fit.integrator_calibration import CALIBRATE_QUICK, calibrate_integrators
+    from .tools.bench import machine_info
+    from .tools.integrator_calibration import CALIBRATE_QUICK, calibrate_integrators
 
     out = Path(args.out)
     if out.suffix.lower() != ".json":
@@ -638,7 +623,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_render)
 
     d = sub.add_parser("demo", help="the main job on a known sky: render, add noise, fit, uncertainty, export LUTs, "
-                                    "truth vs recovered +- sigma (skyfit/demo.py)")
+                                    "truth vs recovered +- sigma (skyfit/tools/demo.py)")
     d.add_argument("--out", default="demo_out", help="report folder (default demo_out)")
     d.add_argument("--quick", action="store_true", help="48x48, 6 wavelengths, Laplace only: within a minute on 2 CPU cores")
     d.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's)")

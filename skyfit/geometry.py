@@ -9,8 +9,14 @@ Square roots of quantities that are non-negative in exact arithmetic are
 taken with :func:`safe_sqrt`, whose value clamps rounding negatives to 0 and
 whose gradient stays finite at 0 (``torch.sqrt`` has an infinite derivative
 there and ``clamp`` alone gives NaN through ``0 * inf``).
+
+Directions as unit vectors in the local East-North-Up (ENU) frame, zenith angle
+from Up and azimuth clockwise from North (CONTRACT.md): :func:`zenith_azimuth_to_enu`
+and :func:`enu_to_zenith_azimuth`.
 """
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import Tensor
@@ -110,3 +116,38 @@ def point_along_ray(r: Tensor, mu: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
 def sun_cosine_along_ray(r: Tensor, mu_s: Tensor, nu: Tensor, s: Tensor, r_s: Tensor) -> Tensor:
     """Sun zenith cosine at distance s along a view ray: ``(r mu_s + s nu) / r_s``. [1]"""
     return torch.clamp((r * mu_s + s * nu) / r_s, -1.0, 1.0)
+
+
+# -- directions in the East-North-Up frame ----------------------------------------
+def safe_norm2(a: Tensor, b: Tensor) -> Tensor:
+    """hypot(a, b) with gradient 0 (not NaN) at a = b = 0; exact elsewhere."""
+    s = a * a + b * b
+    pos = s > 0
+    return torch.where(pos, torch.sqrt(torch.where(pos, s, torch.ones_like(s))), torch.zeros_like(s))
+
+
+def zenith_azimuth_to_enu(zenith: Tensor, azimuth: Tensor) -> Tensor:
+    """Unit vectors in the East-North-Up frame.
+
+    Args:
+        zenith: angle from the local vertical, shape (...). [rad]
+        azimuth: clockwise from North (East = pi/2), shape (...). [rad]
+
+    Returns:
+        (E, N, U), shape (..., 3). [1]
+    """
+    s = torch.sin(zenith)
+    return torch.stack([s * torch.sin(azimuth), s * torch.cos(azimuth), torch.cos(zenith)], -1)
+
+
+def enu_to_zenith_azimuth(v: Tensor) -> tuple[Tensor, Tensor]:
+    """Zenith angle [rad] and azimuth [rad, clockwise from North, in [0, 2 pi)] of vectors (..., 3) in ENU.
+
+    Both angles are singular at the zenith and nadir (E = N = 0): there the azimuth is 0 and both
+    gradients are set to 0 instead of NaN. For gradients through the zenith use the vectors themselves.
+    """
+    e, n, u = v.unbind(-1)
+    pos = (e * e + n * n) > 0
+    zenith = torch.atan2(safe_norm2(e, n), u)
+    azimuth = torch.atan2(torch.where(pos, e, torch.zeros_like(e)), torch.where(pos, n, torch.ones_like(n)))
+    return zenith, torch.remainder(azimuth, 2 * math.pi)

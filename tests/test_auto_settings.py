@@ -134,9 +134,8 @@ def test_chosen_single_scattering_settings_meet_the_tolerance(shipped):
     """Every fixed scene, ΔE 1 and 1 % relative error, float32: rendered on a 26 x 26 sky (another pixel
     set than the bench's 40 x 40) against Gauss-Legendre 32 x 128 nodes in float64."""
     from skyfit.atmosphere import load_atmosphere
-    from skyfit.camera import FisheyeCamera
+    from skyfit.camera import FisheyeCamera, render_fisheye
     from skyfit.transmittance import parse_integrator
-    from skyfit.render import render_fisheye
     from skyfit.transmittance import make_integrator
 
     torch.set_num_threads(1)

@@ -11,8 +11,8 @@ import time
 import numpy as np
 import pytest
 
-from skyfit import bench, bench_trade
-from skyfit.bench import BenchRow, pareto_front, speed_ratio_at_equal_error
+from skyfit.tools import bench, trade as bench_trade
+from skyfit.tools.bench import BenchRow, pareto_front, speed_ratio_at_equal_error
 from skyfit.cli import main
 
 # Wall-clock bound of the quick bench on the project's 2-core machines (the brief's ~60 s,

@@ -220,7 +220,7 @@ def test_render_json_output(tmp_path, capsys):
 # -- demo --------------------------------------------------------------------------------
 def test_demo_quick(tmp_path, capsys):
     """The whole main job: the noisy image follows its stated noise model, the fit recovers the truth."""
-    from skyfit.demo import NOISE, TRUTH
+    from skyfit.tools.demo import NOISE, TRUTH
 
     out = tmp_path / "demo"
     rc, stdout, err = _run(["demo", "--quick", "--out", out, "--json", "--threads", "1"], capsys)

@@ -1,6 +1,6 @@
 """Stability at the ends of every axis of the extreme grid (issue #7 part 4; docs/stability.md).
 
-The coarse grid :data:`skyfit.stability.COARSE` takes the ends of each axis
+The coarse grid :data:`skyfit.tools.stability.COARSE` takes the ends of each axis
 (H = 10 m and 100 km, beta = 0 and 1e-2 /m, g = +-0.9999; observer on the
 ground, at the top and in space; sun at the zenith, half below the horizon
 and 18 deg below it; views straight up/down, +-1e-3, +-1e-6 and 0 around the
@@ -8,7 +8,7 @@ horizontal, the ground's horizon +-1e-6, and at the sun) in float64 and
 float32. Every method must return finite, non-negative radiance with finite
 gradients w.r.t. beta, H, g and the albedo, or refuse with the ValueError of
 its documented regime. The optical-depth columns are compared with the
-float64 scipy reference (skyfit.reference.column_quad) where the methods
+float64 scipy reference (skyfit.tools.reference.column_quad) where the methods
 document an accuracy. The full grid is scripts/stability_report.py
 (test_full_grid_report, marked slow).
 """
@@ -20,7 +20,7 @@ import re
 import pytest
 import torch
 
-from skyfit import stability as S
+from skyfit.tools import stability as S
 from skyfit.transmittance import INTEGRATORS, make_integrator
 
 # Documented regimes (module docstrings), matched on their messages.
@@ -167,7 +167,7 @@ def test_taylor_is_exact_for_vertical_rays_at_every_scale_height(reference_cache
     grid = S.Grid(altitudes=(("ground", 0.0), ("10 km", 1e4)), sun_zenith_deg=(0.0,), horizon_views=False)
     atm = S.base_atmosphere()
     integ = make_integrator("taylor")
-    from skyfit.reference import column_quad
+    from skyfit.tools.reference import column_quad
     from skyfit.transmittance.taylor import taylor_column
 
     for H in S.SCALE_HEIGHTS_M:

@@ -1,7 +1,7 @@
 """Synthetic recovery: fit skies rendered from known atmospheres with seeded 1 % noise.
 
 The truth is built from a config dict with :func:`skyfit.atmosphere.atmosphere_from_config`
-and rendered by :func:`skyfit.render.render_fisheye` -- not through the fit's own
+and rendered by :func:`skyfit.camera.render_fisheye` -- not through the fit's own
 parameterisation -- so a wrong mapping from fit parameters to the atmosphere fails here.
 Small images (<= 32 x 32), 6 wavelengths, single scattering, Gauss-Legendre optical depth.
 """
@@ -18,9 +18,9 @@ import torch
 
 import skyfit
 from skyfit.atmosphere import atmosphere_from_config, load_yaml
-from skyfit.camera import FisheyeCamera
+from skyfit.camera import FisheyeCamera, render_fisheye
 from skyfit.fit import FitOptions, FitProblem, Observation, Parameterisation, SkyModel, fit, make_loss
-from skyfit.render import render_fisheye, spectral_to_xyz, xyz_to_linear_srgb
+from skyfit.render import spectral_to_xyz, xyz_to_linear_srgb
 from skyfit.transmittance import make_integrator
 
 LAM = np.linspace(420.0, 680.0, 6)

@@ -1,7 +1,7 @@
 """Synthetic recovery with multiple scattering: the ground albedo becomes observable.
 
 Skies are built from config dicts (:func:`skyfit.atmosphere.atmosphere_from_config`, not the
-fit's parameterisation) and rendered by :func:`skyfit.render.render_fisheye` with Hillaire's
+fit's parameterisation) and rendered by :func:`skyfit.camera.render_fisheye` with Hillaire's
 LUT built directly by :func:`skyfit.scattering.hillaire.hillaire_lut`; 1 % seeded noise.
 48 x 48 equidistant fisheyes, 6 wavelengths (the 128 x 128 x 16 runs are in
 ``scripts/fit_recovery.py --orders 2``, docs/fitting.md).
@@ -16,9 +16,8 @@ import pytest
 import torch
 
 from skyfit.atmosphere import atmosphere_from_config
-from skyfit.camera import FisheyeCamera
+from skyfit.camera import FisheyeCamera, render_fisheye
 from skyfit.fit import FitOptions, FitProblem, Observation, Parameterisation, SkyModel, fit, make_loss
-from skyfit.render import render_fisheye
 from skyfit.scattering.bruneton_tables import TableSizes
 from skyfit.scattering.hillaire import hillaire_lut
 from skyfit.transmittance import make_integrator

@@ -1,7 +1,7 @@
-"""Integrator calibration (skyfit.fit.integrator_calibration, ``skyfit calibrate-integrator``).
+"""Integrator calibration (skyfit.tools.integrator_calibration, ``skyfit calibrate-integrator``).
 
 Expected values come from computations independent of the code under test:
-columns by ``scipy.integrate.quad`` (skyfit.reference.column_quad), the
+columns by ``scipy.integrate.quad`` (skyfit.tools.reference.column_quad), the
 paper's grid search evaluated point by point, and radiance references rendered
 here with node counts the module does not use (Gauss-Legendre optical depth
 96 nodes, view integral 192 nodes; tests/test_single_scattering_reference.py
@@ -22,13 +22,13 @@ import torch
 from skyfit.atmosphere import load_atmosphere
 from skyfit.cli import main
 from skyfit.geometry import point_along_ray
-from skyfit.reference import column_quad
+from skyfit.tools.reference import column_quad
 from skyfit.scattering import single_scattering
 from skyfit.transmittance import make_integrator
 from skyfit.transmittance.spline import SplineOpticalDepth
 from skyfit.transmittance.taylor import TaylorOpticalDepth
 
-ic = importlib.import_module("skyfit.fit.integrator_calibration")
+ic = importlib.import_module("skyfit.tools.integrator_calibration")
 
 torch.set_num_threads(1)
 

@@ -1,6 +1,6 @@
 """bruneton_lut, chapman and height_fog against independent references.
 
-References: scipy.integrate.quad in float64 (skyfit.reference.column_quad,
+References: scipy.integrate.quad in float64 (skyfit.tools.reference.column_quad,
 epsrel 1e-10) on the docs/accuracy.md grid plus short segments, closed forms
 (the Chapman function at the horizon, X e^X K_1(X); the flat-Earth integral),
 and torch.autograd.gradcheck. Bounds are the maxima measured by
@@ -13,7 +13,7 @@ import pytest
 import torch
 from scipy import integrate, special
 
-from skyfit.reference import accuracy_cases, column_quad, relative_column_error, segment_to_boundary
+from skyfit.tools.reference import accuracy_cases, column_quad, relative_column_error, segment_to_boundary
 from skyfit.transmittance import integrator_class, make_integrator
 from skyfit.transmittance.chapman import chapman_column_up
 from skyfit.transmittance.fog import curvature_fraction

@@ -22,9 +22,8 @@ from torch.testing import assert_close
 
 import skyfit
 from skyfit.atmosphere import atmosphere_from_config, load_atmosphere, load_yaml
-from skyfit.camera import FisheyeCamera
+from skyfit.camera import FisheyeCamera, render_fisheye
 from skyfit.fit import FitError, FitOptions, FitProblem, Observation, Parameterisation, SkyModel, fit, make_loss
-from skyfit.render import render_fisheye
 from skyfit.scattering import TableSizes, precompute, single_scattering, sky_radiance
 from skyfit.scattering.hillaire import hillaire_lut, hillaire_multiple
 from skyfit.scattering.single import transmittance_to_sun

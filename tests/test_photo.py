@@ -3,7 +3,7 @@
 Expected values come from closed forms (the camera noise model written out in
 the test, Sheppard's 1/12 DN^2 for rounding, cos^4 and polynomial falloff from
 pixel coordinates), colour-science (sRGB curve), scipy.stats (normal tails)
-and torch.distributions.Normal, never from outputs of skyfit.camera.photo.
+and torch.distributions.Normal, never from outputs of skyfit.camera (srgb, photo_io, likelihood, sensor).
 Random tests use fixed seeds and 5-sigma bounds from the sampling distribution.
 """
 from __future__ import annotations
@@ -21,16 +21,10 @@ import torch
 from torch.testing import assert_close
 
 from skyfit.camera import FisheyeCamera
-from skyfit.camera.photo import (
-    censored_gaussian_nll,
-    fit_exposure_scale,
-    load_ldr_photo,
-    spectral_response_matrix,
-    srgb_decode,
-    srgb_encode,
-    synthesize_photo,
-    vignetting_map,
-)
+from skyfit.camera.likelihood import censored_gaussian_nll, fit_exposure_scale
+from skyfit.camera.photo_io import load_ldr_photo
+from skyfit.camera.sensor import spectral_response_matrix, synthesize_photo, vignetting_map
+from skyfit.camera.srgb import srgb_decode, srgb_encode
 from skyfit.render import spectral_to_xyz, spectral_to_xyz_matrix, xyz_to_linear_srgb
 
 F64 = torch.float64
@@ -404,7 +398,7 @@ def test_rendered_sky_to_ldr_photo_and_back_to_its_exposure():
     # usable pixels equals the one the simulation used (gain * exposure / max DN),
     # within the 8-bit rounding (~0.3% per pixel, averaged over > 100 pixels).
     from skyfit.atmosphere import load_atmosphere
-    from skyfit.render import render_fisheye
+    from skyfit.camera import render_fisheye
     from skyfit.transmittance import make_integrator
 
     wl = torch.linspace(400.0, 700.0, 5, dtype=F64)

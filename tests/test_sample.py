@@ -26,7 +26,10 @@ from skyfit.camera import FisheyeCamera
 from skyfit.cli import main
 from skyfit.fit import FitOptions, FitProblem, Observation, Parameterisation, SkyModel, fit, make_loss
 from skyfit.fit.batched import BatchedLikelihood, per_walker_loglike
-from skyfit.fit.sample import (DEFAULT_PRIORS, LogPosterior, SampleError, make_priors, read_checkpoint, sample_posterior)
+from skyfit.fit.chain import read_checkpoint
+from skyfit.fit.posterior import LogPosterior
+from skyfit.fit.priors import DEFAULT_PRIORS, SampleError, make_priors
+from skyfit.fit.sample import sample_posterior
 from skyfit.transmittance import make_integrator
 from _cli import run as _cli
 
@@ -129,6 +132,18 @@ def test_prior_overrides_and_bad_prior():
     assert np.isfinite(out[0]) and out[1] == -np.inf
     with pytest.raises(SampleError, match="unknown prior kind"):
         make_priors(prob, {"mie_g": {"kind": "beta"}})
+
+
+def test_default_priors_come_from_the_parameter_table():
+    """DEFAULT_PRIORS is derived from PARAMETERS: a kind alone spans the parameter's range."""
+    from skyfit.fit.parameters import PARAMETERS
+
+    assert list(DEFAULT_PRIORS) == [n for n, s in PARAMETERS.items() if s.prior is not None]
+    for n, spec in PARAMETERS.items():
+        if isinstance(spec.prior, str):
+            assert (DEFAULT_PRIORS[n].kind, DEFAULT_PRIORS[n].lo, DEFAULT_PRIORS[n].hi) == (spec.prior, spec.lo, spec.hi)
+    for n in ("sun_zenith_offset", "camera_tilt_north", "camera_tilt_east"):
+        assert (DEFAULT_PRIORS[n].lo, DEFAULT_PRIORS[n].hi) == (PARAMETERS[n].lo, PARAMETERS[n].hi)
 
 
 def test_posterior_covers_the_truth_and_agrees_with_laplace(tmp_path):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from skyfit.reference import accuracy_cases, column_quad, relative_column_error
+from skyfit.tools.reference import accuracy_cases, column_quad, relative_column_error
 from skyfit.transmittance import make_integrator
 
 BOTTOM, TOP = 6_360_000.0, 6_420_000.0

@@ -1,6 +1,7 @@
-"""Atmosphere parameters, constants with sources, and config loading."""
+"""Atmosphere parameters, density profiles, constants with sources, and config loading."""
 from .config import ConfigError, atmosphere_from_config, load_atmosphere, load_yaml, read_config, spectral_tables
 from .params import MIE_PHASES, Atmosphere, angstrom_extinction, rayleigh_power_law
+from .profiles import ozone_tent_density, profile_densities
 from .solar import solar_irradiance
 from .wavelengths import DEFAULT_WAVELENGTHS, parse_wavelengths
 
@@ -13,7 +14,9 @@ __all__ = [
     "atmosphere_from_config",
     "load_atmosphere",
     "load_yaml",
+    "ozone_tent_density",
     "parse_wavelengths",
+    "profile_densities",
     "rayleigh_power_law",
     "read_config",
     "solar_irradiance",

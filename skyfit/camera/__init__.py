@@ -1,4 +1,4 @@
-"""Fisheye cameras (directions per pixel, masks), the sun's position, and photos (LDR and synthetic)."""
+"""Fisheye cameras (directions per pixel, masks), fisheye sky images, the sun's position, and photos (LDR and synthetic)."""
 from .fisheye import (
     CLASSICAL_PROJECTIONS,
     PROJECTIONS,
@@ -9,19 +9,12 @@ from .fisheye import (
     theta_to_rho,
     zenith_azimuth_to_enu,
 )
+from .image import SkyImage, render_fisheye
 from .kannala_brandt import check_kb_monotone, kb_derivative, kb_polynomial, kb_theta
-from .photo import (
-    PhotoObservation,
-    SyntheticPhoto,
-    censored_gaussian_nll,
-    fit_exposure_scale,
-    load_ldr_photo,
-    spectral_response_matrix,
-    srgb_decode,
-    srgb_encode,
-    synthesize_photo,
-    vignetting_map,
-)
+from .likelihood import censored_gaussian_nll, fit_exposure_scale
+from .photo_io import PhotoObservation, load_ldr_photo
+from .sensor import SyntheticPhoto, spectral_response_matrix, synthesize_photo, vignetting_map
+from .srgb import srgb_decode, srgb_encode
 from .sun import SunPosition, delta_t_espenak_meeus, julian_day, parse_location, parse_time, sun_position
 
 __all__ = [
@@ -29,6 +22,7 @@ __all__ = [
     "PROJECTIONS",
     "FisheyeCamera",
     "PhotoObservation",
+    "SkyImage",
     "SunPosition",
     "SyntheticPhoto",
     "censored_gaussian_nll",
@@ -43,6 +37,7 @@ __all__ = [
     "load_ldr_photo",
     "parse_location",
     "parse_time",
+    "render_fisheye",
     "reproject",
     "rho_to_theta",
     "spectral_response_matrix",

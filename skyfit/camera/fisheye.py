@@ -52,6 +52,8 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+# The ENU direction conversions live in the base layer (render needs them too) and stay importable from here.
+from ..geometry import enu_to_zenith_azimuth, safe_norm2, zenith_azimuth_to_enu  # noqa: F401
 from .kannala_brandt import check_kb_monotone, kb_polynomial, kb_ratio, kb_theta
 
 CLASSICAL_PROJECTIONS = ("equidistant", "equisolid", "orthographic", "stereographic")
@@ -107,13 +109,6 @@ def rho_to_theta(rho: Tensor, projection: str) -> Tensor:
 
 
 # -- smooth helpers ----------------------------------------------------------------
-def _safe_norm2(a: Tensor, b: Tensor) -> Tensor:
-    """hypot(a, b) with gradient 0 (not NaN) at a = b = 0; exact elsewhere."""
-    s = a * a + b * b
-    pos = s > 0
-    return torch.where(pos, torch.sqrt(torch.where(pos, s, torch.ones_like(s))), torch.zeros_like(s))
-
-
 def _fill_nan(v: Tensor, keep: Tensor) -> Tensor:
     """v (..., 3) where keep (...), NaN elsewhere; the NaN is a constant, so gradients stay finite."""
     return torch.where(keep[..., None], v, torch.full_like(v, math.nan))
@@ -122,33 +117,6 @@ def _fill_nan(v: Tensor, keep: Tensor) -> Tensor:
 def _sinc(theta: Tensor) -> Tensor:
     """sin(theta) / theta, 1 at 0 (torch.sinc is the normalised sin(pi x)/(pi x))."""
     return torch.sinc(theta / math.pi)
-
-
-def zenith_azimuth_to_enu(zenith: Tensor, azimuth: Tensor) -> Tensor:
-    """Unit vectors in the East-North-Up frame.
-
-    Args:
-        zenith: angle from the local vertical, shape (...). [rad]
-        azimuth: clockwise from North (East = pi/2), shape (...). [rad]
-
-    Returns:
-        (E, N, U), shape (..., 3). [1]
-    """
-    s = torch.sin(zenith)
-    return torch.stack([s * torch.sin(azimuth), s * torch.cos(azimuth), torch.cos(zenith)], -1)
-
-
-def enu_to_zenith_azimuth(v: Tensor) -> tuple[Tensor, Tensor]:
-    """Zenith angle [rad] and azimuth [rad, clockwise from North, in [0, 2 pi)] of vectors (..., 3) in ENU.
-
-    Both angles are singular at the zenith and nadir (E = N = 0): there the azimuth is 0 and both
-    gradients are set to 0 instead of NaN. For gradients through the zenith use the vectors themselves.
-    """
-    e, n, u = v.unbind(-1)
-    pos = (e * e + n * n) > 0
-    zenith = torch.atan2(_safe_norm2(e, n), u)
-    azimuth = torch.atan2(torch.where(pos, e, torch.zeros_like(e)), torch.where(pos, n, torch.ones_like(n)))
-    return zenith, torch.remainder(azimuth, 2 * math.pi)
 
 
 def _as_param(value, name: str, shape: tuple, like: Tensor | None) -> Tensor:
@@ -360,7 +328,7 @@ class FisheyeCamera:
         rho2 = (u * u + w * w) / (s * s)
         p = self.projection
         if p == "equidistant":  # theta = (pi/2) rho; sin(theta)/r = sinc(theta) (pi/2)/R90
-            theta = (math.pi / 2) * _safe_norm2(u, w) / s
+            theta = (math.pi / 2) * safe_norm2(u, w) / s
             sr, cos_t = _sinc(theta) * (math.pi / 2) / s, torch.cos(theta)
         elif p == "equisolid":  # rho = sqrt2 sin(theta/2)
             sr, cos_t = math.sqrt(2.0) * torch.sqrt(1 - rho2 / 2) / s, 1 - rho2
@@ -370,7 +338,7 @@ class FisheyeCamera:
             sr, cos_t = 2 / (s * (1 + rho2)), (1 - rho2) / (1 + rho2)
         else:  # r = f P(theta): sin(theta)/r = sinc(theta) / (f Q(theta))
             k = self.kb_coeffs.to(dtype=dtype, device=device)
-            theta = kb_theta(_safe_norm2(u, w) / s, k, math.radians(self.max_zenith_deg))
+            theta = kb_theta(safe_norm2(u, w) / s, k, math.radians(self.max_zenith_deg))
             sr, cos_t = _sinc(theta) / (s * kb_ratio(theta, k)), torch.cos(theta)
         return torch.stack([u * sr, w * sr, cos_t], -1), inside
 
@@ -393,7 +361,7 @@ class FisheyeCamera:
         n = d.norm(dim=-1)
         p = self.projection
         if p == "equidistant":  # r / sin(theta) = R90 (2/pi) / sinc(theta)
-            theta = torch.atan2(_safe_norm2(dx, dy), dz)
+            theta = torch.atan2(safe_norm2(dx, dy), dz)
             t = s * (2 / math.pi) / (_sinc(theta) * n)
         elif p == "equisolid":  # sqrt2 sin(theta/2) / sin(theta) = 1 / sqrt(1 + cos(theta))
             t = s / torch.sqrt(n * (n + dz))
@@ -402,7 +370,7 @@ class FisheyeCamera:
         elif p == "stereographic":  # tan(theta/2) / sin(theta) = 1 / (1 + cos(theta))
             t = s / (n + dz)
         else:  # f P(theta) / sin(theta) = f Q(theta) / sinc(theta)
-            theta = torch.atan2(_safe_norm2(dx, dy), dz)
+            theta = torch.atan2(safe_norm2(dx, dy), dz)
             t = s * kb_ratio(theta, self.kb_coeffs.to(dtype=dtype, device=device)) / (_sinc(theta) * n)
         nan = torch.full_like(t, math.nan)
         x = torch.where(inside, self.cx.to(dtype=dtype, device=device) + t * dx, nan)

@@ -9,7 +9,7 @@ and Learning Algorithms", Ch. 27; Gelman et al. 2013, BDA3 Sec. 4.1)::
     cov_x = H^-1,   H = d^2 (-log L) / dx dx   at x*
 
 (flat priors in x: the default log-uniform priors of the positive scale parameters are
-flat in x; :mod:`skyfit.fit.sample` adds the others). H comes from torch autograd
+flat in x; :mod:`skyfit.fit.posterior` adds the others). H comes from torch autograd
 (:func:`torch.autograd.functional.hessian`, float64). Physical units by the delta
 method: v = f(x) elementwise, so cov_v = J cov_x J with J = diag(f'(x*)).
 Intervals are Gaussian in x, mapped through f: [f(x* - z s), f(x* + z s)] (they respect

@@ -28,9 +28,12 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from ..atmosphere import Atmosphere
+from ..atmosphere.config import spectral_tables
+from ..atmosphere.constants import DOBSON_UNIT_PER_M2
 
 
 class FitError(ValueError):
@@ -52,6 +55,9 @@ class ParameterSpec:
         lo, hi: open interval of ``interval`` and ``loginterval`` (and the range a user's value must lie in).
         typical: physically plausible span used to spread multi-start points. [unit]
         nuisance: an instrument parameter (may be per observation) rather than an atmospheric one.
+        prior: default prior of ``skyfit sample`` (:data:`skyfit.fit.priors.DEFAULT_PRIORS`): a kind
+            (``uniform`` / ``loguniform``) over the range (lo, hi) above, or (kind, lo, hi) where that
+            range is unbounded or wider than physical; None: no default prior.
         description: one line for docs and reports.
     """
 
@@ -63,6 +69,7 @@ class ParameterSpec:
     hi: float = math.inf
     typical: tuple[float, float] = (1.0, 1.0)
     nuisance: bool = False
+    prior: str | tuple[str, float, float] | None = None
     description: str = ""
 
     def forward(self, x: Tensor, hi: float | None = None) -> Tensor:
@@ -75,6 +82,17 @@ class ParameterSpec:
         if self.transform == "loginterval":
             return self.lo * torch.exp(math.log(self.hi / self.lo) * torch.sigmoid(x))
         return self.ref * x
+
+    def log_abs_dvdx(self, x: Tensor, hi: float | None = None) -> Tensor:
+        """log |dv/dx| of the transform at ``x``, elementwise (carries a prior density on v over to x)."""
+        if self.transform == "log":
+            return math.log(self.ref) + x
+        if self.transform == "interval":
+            top = self.hi if hi is None else hi
+            return math.log(top - self.lo) + F.logsigmoid(x) + F.logsigmoid(-x)
+        if self.transform == "loginterval":
+            return self.forward(x).log() + math.log(math.log(self.hi / self.lo)) + F.logsigmoid(x) + F.logsigmoid(-x)
+        return torch.full_like(x, math.log(abs(self.ref)))
 
     def inverse(self, v: float, hi: float | None = None) -> float:
         """Unconstrained value of the physical ``v``; FitError when v is outside the range."""
@@ -101,43 +119,46 @@ _DEG = math.pi / 180.0
 PARAMETERS: dict[str, ParameterSpec] = {
     s.name: s
     for s in (
-        ParameterSpec("rayleigh_scale", "1", "log", 1.0, 0.0, math.inf, (0.85, 1.15),
+        ParameterSpec("rayleigh_scale", "1", "log", 1.0, 0.0, math.inf, (0.85, 1.15), prior=("loguniform", 0.2, 5.0),
                       description="factor on the config's Rayleigh scattering spectrum"),
-        ParameterSpec("rayleigh_scale_height", "m", "loginterval", 1.0, 500.0, 50_000.0, (6500.0, 9500.0),
+        ParameterSpec("rayleigh_scale_height", "m", "loginterval", 1.0, 500.0, 50_000.0, (6500.0, 9500.0), prior="loguniform",
                       description="Rayleigh density scale height, within 0.5-50 km"),
-        ParameterSpec("mie_beta_550", "1/m", "log", 1e-5, 0.0, math.inf, (3e-6, 8e-5),
+        ParameterSpec("mie_beta_550", "1/m", "log", 1e-5, 0.0, math.inf, (3e-6, 8e-5), prior=("loguniform", 1e-7, 1e-3),
                       description="sea-level aerosol extinction coefficient at 550 nm"),
-        ParameterSpec("mie_aod_550", "1", "log", 0.1, 0.0, math.inf, (0.02, 0.4),
+        ParameterSpec("mie_aod_550", "1", "log", 0.1, 0.0, math.inf, (0.02, 0.4), prior=("loguniform", 1e-4, 5.0),
                       description="aerosol optical depth at 550 nm, beta_550 x H_M (instead of mie_beta_550)"),
-        ParameterSpec("mie_angstrom_alpha", "1", "interval", 1.0, -1.0, 4.0, (0.2, 1.8),
+        ParameterSpec("mie_angstrom_alpha", "1", "interval", 1.0, -1.0, 4.0, (0.2, 1.8), prior="uniform",
                       description="Angstrom exponent: extinction ~ (lambda / 550 nm)^-alpha"),
-        ParameterSpec("mie_ssa", "1", "interval", 1.0, 0.0, 1.0, (0.75, 0.98),
+        ParameterSpec("mie_ssa", "1", "interval", 1.0, 0.0, 1.0, (0.75, 0.98), prior="uniform",
                       description="aerosol single-scattering albedo (grey)"),
-        ParameterSpec("mie_scale_height", "m", "loginterval", 1.0, 10.0, 20_000.0, (700.0, 2500.0),
+        ParameterSpec("mie_scale_height", "m", "loginterval", 1.0, 10.0, 20_000.0, (700.0, 2500.0), prior="loguniform",
                       description="aerosol density scale height, within 10 m - 20 km"),
-        ParameterSpec("mie_g", "1", "interval", 1.0, -1.0, 1.0, (0.55, 0.85),
+        ParameterSpec("mie_g", "1", "interval", 1.0, -1.0, 1.0, (0.55, 0.85), prior="uniform",
                       description="aerosol phase-function asymmetry"),
-        ParameterSpec("ground_albedo", "1", "interval", 1.0, 0.0, 1.0, (0.05, 0.35),
+        ParameterSpec("ground_albedo", "1", "interval", 1.0, 0.0, 1.0, (0.05, 0.35), prior="uniform",
                       description="grey Lambertian ground albedo (replaces the config's spectrum)"),
         ParameterSpec("ground_albedo_scale", "1", "interval", 1.0, 0.0, math.inf, (0.6, 1.4),
+                      prior=("uniform", 0.0, 1.0),  # hi replaced by 1 / max(config albedo) (skyfit.fit.priors.make_priors)
                       description="factor on the config's albedo spectrum, in (0, 1 / max albedo)"),
         ParameterSpec("ozone_column", "DU", "log", 300.0, 0.0, math.inf, (220.0, 420.0),
                       description="total ozone column in Dobson units (scales the config's ozone absorption)"),
-        ParameterSpec("exposure", "1", "log", 1.0, 0.0, math.inf, (0.7, 1.4), nuisance=True,
+        ParameterSpec("exposure", "1", "log", 1.0, 0.0, math.inf, (0.7, 1.4), nuisance=True, prior=("loguniform", 1e-6, 1e6),
                       description="calibration scale: data = exposure x model (data units per W/(m^2 sr nm))"),
-        ParameterSpec("noise_scale", "1", "log", 1.0, 0.0, math.inf, (1.0, 1.0), nuisance=True,
+        ParameterSpec("noise_scale", "1", "log", 1.0, 0.0, math.inf, (1.0, 1.0), nuisance=True, prior=("loguniform", 1e-2, 1e2),
                       description="factor on the data's sigma (fitted, it adds log(noise_scale) per element)"),
         ParameterSpec("sun_azimuth_offset", "rad", "linear", 10 * _DEG, -math.inf, math.inf, (-0.2, 0.2), nuisance=True,
+                      prior=("uniform", -45 * _DEG, 45 * _DEG),
                       description="added to the sun azimuth (clockwise); = minus a camera up-azimuth offset"),
-        ParameterSpec("sun_zenith_offset", "rad", "interval", 1.0, -10 * _DEG, 10 * _DEG, (-0.02, 0.02), nuisance=True,
+        ParameterSpec("sun_zenith_offset", "rad", "interval", 1.0, -10 * _DEG, 10 * _DEG, (-0.02, 0.02), nuisance=True, prior="uniform",
                       description="added to the sun zenith angle, within +-10 degrees"),
-        ParameterSpec("camera_tilt_north", "rad", "interval", 1.0, -10 * _DEG, 10 * _DEG, (-0.02, 0.02), nuisance=True,
+        ParameterSpec("camera_tilt_north", "rad", "interval", 1.0, -10 * _DEG, 10 * _DEG, (-0.02, 0.02), nuisance=True, prior="uniform",
                       description="the instrument's zenith axis tilted toward North, within +-10 degrees"),
-        ParameterSpec("camera_tilt_east", "rad", "interval", 1.0, -10 * _DEG, 10 * _DEG, (-0.02, 0.02), nuisance=True,
+        ParameterSpec("camera_tilt_east", "rad", "interval", 1.0, -10 * _DEG, 10 * _DEG, (-0.02, 0.02), nuisance=True, prior="uniform",
                       description="the instrument's zenith axis tilted toward East, within +-10 degrees"),
     )
 }
-"""Every fittable parameter by name (docs/fitting.md has the same table)."""
+"""Every fittable parameter by name: the one table of parameter facts (unit, transform, range, typical span,
+nuisance, default prior of ``skyfit sample``); docs/fitting.md has the same table."""
 
 NUISANCE: tuple[str, ...] = tuple(n for n, s in PARAMETERS.items() if s.nuisance)
 ATMOSPHERE_PARAMETERS: tuple[str, ...] = tuple(n for n, s in PARAMETERS.items() if not s.nuisance)
@@ -172,9 +193,6 @@ def ozone_column_du(atm: Atmosphere) -> float | None:
     """
     if atm.ozone_absorption is None:
         return None
-    from ..atmosphere.config import spectral_tables
-    from ..atmosphere.constants import DOBSON_UNIT_PER_M2
-
     tab = spectral_tables()["ozone_cross_section_233K"]
     wl = np.asarray(tab["wavelength_nm"], float)
     lam = atm.wavelengths.detach().cpu().double().numpy()

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from .data import Observation
+from ..render.colour import _srgb_matrix, spectral_to_xyz_matrix
 from ..io.atomic import atomic_path, write_text_atomic  # noqa: F401  (write_text_atomic: re-exported)
 
 
@@ -46,7 +47,8 @@ def dumps(obj, indent: int | None = 2) -> str:
     return json.dumps(_clean(json.loads(json.dumps(obj, default=_json_default))), indent=indent)
 
 
-def _save_fig(fig, path: Path) -> Path:
+def save_fig(fig, path: Path) -> Path:
+    """Write ``fig`` as a PNG to ``path`` atomically (100 dpi) and close it; returns ``path``."""
     import matplotlib.pyplot as plt
 
     try:
@@ -59,8 +61,6 @@ def _save_fig(fig, path: Path) -> Path:
 
 def luminance(values: Tensor, obs: Observation) -> np.ndarray:
     """Luminance Y [cd/m^2] of (N, C) values of ``obs`` (CIE 1931 from spectra; sRGB inverse for RGB)."""
-    from ..render.colour import _srgb_matrix, spectral_to_xyz_matrix
-
     v = values.detach().cpu().double()
     if obs.kind == "spectral":
         return (v @ spectral_to_xyz_matrix(obs.wavelengths.detach().cpu().double())[:, 1]).numpy()
@@ -68,7 +68,8 @@ def luminance(values: Tensor, obs: Observation) -> np.ndarray:
     return v.numpy() @ inv[1]
 
 
-def _sanitize(name: str) -> str:
+def sanitize(name: str) -> str:
+    """``name`` fit for a file name: every character but letters, digits and ``-_.`` becomes ``_``."""
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
 
 
@@ -79,6 +80,7 @@ def plot_observation(obs: Observation, pred: Tensor, out_dir: Path, stem: str) -
     the normalised residual (mean over channels of (model - data) / sigma) in image layout.
     Kider scans: measured vs model spectrum per sample, and RMSE per ring / error vs sun angle.
     """
+    # matplotlib only when plots are written (0.4 s to import; use("Agg") sets the process-wide backend)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -88,7 +90,7 @@ def plot_observation(obs: Observation, pred: Tensor, out_dir: Path, stem: str) -
     out_dir.mkdir(parents=True, exist_ok=True)
     meas = obs.values[obs.mask].detach().cpu().double()
     mod = pred.detach().cpu().double()
-    base = f"{stem}_{_sanitize(obs.name)}"
+    base = f"{stem}_{sanitize(obs.name)}"
     written = []
     if "image_shape" in obs.metadata and "pixel_index" in obs.metadata:
         h, w = obs.metadata["image_shape"]
@@ -122,7 +124,7 @@ def plot_observation(obs: Observation, pred: Tensor, out_dir: Path, stem: str) -
             ax.set_yticks([])
         fig.suptitle(f"{obs.name}  (North up, East left)")
         fig.tight_layout()
-        written.append(str(_save_fig(fig, out_dir / f"{base}_maps.png")))
+        written.append(str(save_fig(fig, out_dir / f"{base}_maps.png")))
     if obs.kind == "spectral" and "ring" in obs.metadata:
         lam = obs.wavelengths.detach().cpu().numpy()
         rings = torch.as_tensor(obs.metadata["ring"])[obs.mask].numpy()
@@ -144,7 +146,7 @@ def plot_observation(obs: Observation, pred: Tensor, out_dir: Path, stem: str) -
             ax.set_title(f"#{k} r{rings[k]} {float(meas[k].max()) * 1e3:.0f}", fontsize=5, pad=1)
         fig.suptitle(f"{obs.name}: measured (black) vs model (red) over {lam[0]:g}-{lam[-1]:g} nm; "
                      "title: sample, ring, measured peak [mW/(m^2 sr nm)]", fontsize=8)
-        written.append(str(_save_fig(fig, out_dir / f"{base}_spectra.png")))
+        written.append(str(save_fig(fig, out_dir / f"{base}_spectra.png")))
 
         err = (mod - meas).numpy() * 1e3
         rel = ((mod - meas) / meas).numpy()
@@ -163,7 +165,7 @@ def plot_observation(obs: Observation, pred: Tensor, out_dir: Path, stem: str) -
         a2.set_ylabel("mean relative error [%]")
         a2.set_title("error vs sun angle (colour = ring)")
         fig.tight_layout()
-        written.append(str(_save_fig(fig, out_dir / f"{base}_rings.png")))
+        written.append(str(save_fig(fig, out_dir / f"{base}_rings.png")))
     return written
 
 

@@ -596,8 +596,7 @@ def run_select(data, config: dict, out, *, overrides: dict | None = None, config
     nuisance = [n for n in (s.free or []) if n in SELECT_NUISANCE] if s.free is not None else \
         ["exposure"] + (["sun_azimuth_offset"] if rings else [])
     per = s.per_observation
-    options = FitOptions(starts=s.starts, seed=s.seed, adam_steps=s.adam_steps, max_iter=s.max_iter,
-                         grad_tol=s.grad_tol, rel_tol=s.rel_tol)
+    options = s.options()
     sigma = getattr(s, "select_sigma", "scaled")
     heldout = getattr(s, "select_heldout", HELDOUT_DEFAULT)
     ladder = Ladder(prep.base, prep.model, observations, prep.loss, nuisance_free=nuisance, per_observation=per,

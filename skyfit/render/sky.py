@@ -1,17 +1,19 @@
-"""Render skies: from directions, and as fisheye images."""
-from __future__ import annotations
+"""Render skies from directions: unit vectors or (zenith, azimuth) angles.
 
-import dataclasses
-import math
+Fisheye images (a camera's pixels) are rendered one layer up, by
+:func:`skyfit.camera.image.render_fisheye`.
+"""
+from __future__ import annotations
 
 import torch
 from torch import Tensor
 
 from ..atmosphere import Atmosphere
-from ..camera.fisheye import FisheyeCamera, zenith_azimuth_to_enu
+from ..geometry import zenith_azimuth_to_enu
 from ..scattering import single_scattering
+from ..scattering.hillaire import hillaire_sky_radiance
+from ..scattering.multiple import precompute, sky_radiance
 from ..transmittance import OpticalDepthIntegrator
-from .colour import spectral_to_xyz, xyz_to_linear_srgb
 
 
 def render_vectors(
@@ -64,13 +66,9 @@ def render_vectors(
     if orders == 1:
         return single_scattering(atm, r, mu, mu_s, nu, integrator, **kwargs)
     if multiple == "hillaire":
-        from ..scattering.hillaire import hillaire_sky_radiance
-
         return hillaire_sky_radiance(atm, r, mu, mu_s, nu, integrator, lut=tables, **kwargs)
     if multiple != "bruneton":
         raise ValueError(f"unknown multiple-scattering method {multiple!r}; valid: bruneton, hillaire")
-    from ..scattering.multiple import precompute, sky_radiance
-
     if tables is None:
         tables = precompute(atm, orders=orders, sizes=table_sizes)
     elif tables.orders < orders:
@@ -103,37 +101,3 @@ def render_directions(
     view = zenith_azimuth_to_enu(T(zenith), T(azimuth))
     sun = zenith_azimuth_to_enu(T(sun_zenith), T(sun_azimuth))
     return render_vectors(atm, view, sun, integrator, altitude, orders, **kwargs)
-
-
-@dataclasses.dataclass
-class SkyImage:
-    """A rendered fisheye: spectral radiance (size, size, W), XYZ, linear sRGB, valid mask."""
-
-    spectral: Tensor
-    xyz: Tensor
-    rgb: Tensor
-    valid: Tensor
-    wavelengths: Tensor
-    camera: FisheyeCamera
-
-
-def render_fisheye(
-    atm: Atmosphere,
-    camera: FisheyeCamera,
-    sun_zenith_deg: float,
-    sun_azimuth_deg: float,
-    integrator: OpticalDepthIntegrator,
-    altitude: float = 0.0,
-    **kwargs,
-) -> SkyImage:
-    """Render a fisheye sky image; pixels outside the camera's field of view are 0."""
-    view, valid = camera.pixel_vectors(atm.dtype, atm.device)
-    sun = zenith_azimuth_to_enu(
-        torch.tensor(math.radians(sun_zenith_deg), dtype=atm.dtype, device=atm.device),
-        torch.tensor(math.radians(sun_azimuth_deg), dtype=atm.dtype, device=atm.device),
-    )
-    spectral = torch.zeros(*valid.shape, atm.wavelengths.shape[0], dtype=atm.dtype, device=atm.device)
-    vals = render_vectors(atm, view[valid], sun, integrator, altitude, **kwargs)
-    spectral = spectral.index_put((valid,), vals)
-    xyz = spectral_to_xyz(spectral, atm.wavelengths)
-    return SkyImage(spectral, xyz, xyz_to_linear_srgb(xyz), valid, atm.wavelengths, camera)

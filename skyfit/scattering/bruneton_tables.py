@@ -34,6 +34,8 @@ weights depend on geometry only, so gradients flow to the table values
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import dataclasses
 import math
 
@@ -76,6 +78,15 @@ class TableSizes:
         if self.scattering_mu % 2 or self.scattering_mu < 4:
             raise ValueError(f"TableSizes.scattering_mu must be even and >= 4 (two halves), got {self.scattering_mu}")
 
+    @classmethod
+    def parse(cls, spec: "str | Sequence[int]") -> "TableSizes":
+        """The scattering table's ``R,MU,MUS,NU`` (a string or 4 integers) with 2017's other sizes; ValueError otherwise."""
+        try:
+            r, mu, mu_s, nu = (int(v) for v in (spec.split(",") if isinstance(spec, str) else spec))
+        except (TypeError, ValueError):
+            raise ValueError(f"table sizes must be R,MU,MUS,NU integers, got {spec!r}") from None
+        return cls(scattering_r=r, scattering_mu=mu, scattering_mu_s=mu_s, scattering_nu=nu)
+
     @property
     def scattering_shape(self) -> tuple[int, int, int, int]:
         return (self.scattering_r, self.scattering_mu, self.scattering_mu_s, self.scattering_nu)
@@ -86,35 +97,7 @@ class TableSizes:
 
 
 # ----------------------------------------------------------------------------------------
-# Density profiles
-
-
-def ozone_tent_density(altitude: Tensor, layer_m: tuple[float, float, float]) -> Tensor:
-    """Ozone number density relative to its peak: 0 below ``bottom``, rising linearly to 1 at
-    ``peak``, falling linearly to 0 at ``top`` (Bruneton 2017, demo.cc ozone layers). [1]
-
-    The clamp acts on altitude (geometry), never on a fitted parameter.
-
-    Args:
-        altitude: shape (...). [m]
-        layer_m: (bottom, peak, top). [m]
-    """
-    lo, peak, hi = layer_m
-    rise = (altitude - lo) / (peak - lo)
-    fall = (hi - altitude) / (hi - peak)
-    return torch.clamp(torch.minimum(rise, fall), 0.0, 1.0)
-
-
-def profile_densities(altitude: Tensor, atm: Atmosphere, ozone: bool = True) -> Tensor:
-    """Rayleigh, Mie (and ozone) densities relative to their reference, shape (..., 2 or 3). [1]
-
-    exp(-h / H_R), exp(-h / H_M) (Bruneton & Neyret 2008 eqs. 1, 3) and the ozone tent.
-    """
-    h = altitude.unsqueeze(-1)
-    dens = torch.exp(-h / atm.scale_heights)
-    if not ozone:
-        return dens
-    return torch.cat([dens, ozone_tent_density(altitude, atm.ozone_layer_m).unsqueeze(-1)], dim=-1)
+# Extinction rows (the density profiles are in skyfit.atmosphere.profiles)
 
 
 def extinction_matrix3(atm: Atmosphere) -> Tensor:

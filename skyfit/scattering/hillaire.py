@@ -33,16 +33,18 @@ Choices, with their reasons:
 from __future__ import annotations
 
 import math
+import time
 
 import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from ..atmosphere import Atmosphere
+from ..atmosphere.profiles import profile_densities
 from ..geometry import distance_to_bottom, distance_to_top, point_along_ray, ray_hits_ground, sun_cosine_along_ray
 from ..quadrature import nodes_weights, validate_rule
 from ..transmittance import ColumnFn, OpticalDepthIntegrator
-from .bruneton_tables import TableSizes, extinction_matrix3, profile_densities
+from .bruneton_tables import TableSizes, extinction_matrix3
 from .multiple import _columns, _Ctx, transmittance_columns_table
 from .single import path_columns, path_extinction, single_scattering, sun_ray_cosine, sun_visible_fraction, view_ray_samples
 
@@ -136,8 +138,6 @@ def hillaire_lut(
     Returns:
         A :class:`HillaireLUT`.
     """
-    import time
-
     n_h, n_s = (int(v) for v in size)
     if n_h < 2 or n_s < 2 or directions < 1 or samples < 1:
         raise ValueError(f"need size >= (2, 2), directions >= 1, samples >= 1; got {size}, {directions}, {samples}")

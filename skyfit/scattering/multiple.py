@@ -55,6 +55,7 @@ from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from ..atmosphere import Atmosphere
+from ..atmosphere.profiles import profile_densities
 from ..geometry import distance_to_bottom, distance_to_top, ray_hits_ground, safe_sqrt
 from .bruneton_tables import (
     MU_S_MIN_DEFAULT,
@@ -63,7 +64,6 @@ from .bruneton_tables import (
     interpolate,
     irradiance_index,
     irradiance_texel_params,
-    profile_densities,
     scattering_index,
     scattering_texel_params,
     transmittance_index,

@@ -1,7 +1,7 @@
 """Exact column of the ozone tent profile along a straight segment in a spherical atmosphere.
 
 The ozone number density relative to its peak is a *tent* in altitude h (Bruneton 2017,
-demo.cc ozone layers; :func:`skyfit.scattering.bruneton_tables.ozone_tent_density`)::
+demo.cc ozone layers; :func:`skyfit.atmosphere.profiles.ozone_tent_density`)::
 
     f(h) = 0                                  h <= bottom or h >= top
            (h - bottom) / (peak - bottom)     bottom <= h <= peak

@@ -37,9 +37,12 @@ import torch
 from torch import Tensor
 
 from ..atmosphere import Atmosphere
+from ..scattering import single_scattering
 from ..transmittance import ColumnFn
 from ..transmittance.quadrature import GaussOpticalDepth
+from ..transmittance.spline import SplineOpticalDepth
 from ..transmittance.taylor import TAYLOR_A_DEFAULT, TAYLOR_B_DEFAULT, TaylorOpticalDepth, taylor_column
+from .reference import COLUMN_ERROR_FLOOR_M
 
 LAYER_NAMES: tuple[str, ...] = ("rayleigh", "mie")
 """Layers in the order of :attr:`Atmosphere.scale_heights` and the rows of its extinction matrix."""
@@ -100,8 +103,6 @@ CALIBRATE_QUICK: dict = {
 }
 """``skyfit calibrate-integrator --quick`` (for CI): a 21 x 20 (d, t) domain instead of 101 x 100,
 16 rays instead of 63, coarser candidate lists."""
-
-_COLUMN_FLOOR_M = 1e-3  # as skyfit.reference.COLUMN_ERROR_FLOOR_M (1 mm of sea-level path)
 
 
 def _validate(name: str, value: str, valid: tuple[str, ...]) -> str:
@@ -240,7 +241,7 @@ def layer_errors(columns: Tensor, reference: Tensor, extinction: Tensor, metric:
     """
     _validate("metric", metric, DOMAIN_METRICS)
     if metric == "column":
-        rel = (columns - reference) / torch.clamp_min(reference, _COLUMN_FLOOR_M)
+        rel = (columns - reference) / torch.clamp_min(reference, COLUMN_ERROR_FLOOR_M)
         return (rel * rel).mean(dim=-2)
     beta = extinction.to(dtype=columns.dtype, device=columns.device)
     e = torch.exp(-columns.unsqueeze(-1) * beta) - torch.exp(-reference.unsqueeze(-1) * beta)  # (..., P, K, W)
@@ -482,8 +483,6 @@ def radiance_rays(
 
 def render_rays(atm: Atmosphere, rays: RadianceRays, integrator, view_samples: int, rule: str, column_fn: ColumnFn | None = None) -> Tensor:
     """Single-scattering radiance of the rays, shape (R, W), without gradients. [W/(m^2 sr nm)]"""
-    from ..scattering import single_scattering
-
     with torch.no_grad():
         return single_scattering(atm, rays.r, rays.mu, rays.mu_s, rays.nu, integrator, view_samples=view_samples, rule=rule,
                                  column_fn=column_fn)
@@ -530,8 +529,6 @@ class RadianceObjective:
 
     def __call__(self, a: Tensor, b: Tensor) -> Tensor:
         """Mean squared relative radiance error, shape (), for a, b of shape () or (K,)."""
-        from ..scattering import single_scattering
-
         self.evaluations += 1
         r = self.rays
         rad = single_scattering(self.atm, r.r, r.mu, r.mu_s, r.nu, TaylorOpticalDepth(a, b), view_samples=self.view_samples, rule="gauss")
@@ -571,8 +568,6 @@ def spline_errors(atm: Atmosphere, domain: GalajDomain, column_reference: Tensor
     nodes, so that only the spline's error is measured. ``radiance=False`` skips
     it (returns NaN).
     """
-    from ..transmittance.spline import SplineOpticalDepth
-
     spl = SplineOpticalDepth(height_points=height_points, distance_points=distance_points, kind=kind)
     H = atm.scale_heights.detach()
     with torch.no_grad():
@@ -789,8 +784,6 @@ def calibrate_integrators(
         sp = select_spline_grid(atm, domain, column_ref, rays, rad_ref, 0.5 * tolerance, transmittance_tolerance, spline_kind,
                                 height_candidates, distance_candidates)
         if sp["passed"] and view["passed"]:
-            from ..transmittance.spline import SplineOpticalDepth
-
             spl = SplineOpticalDepth(height_points=sp["height_points"], distance_points=sp["distance_points"], kind=spline_kind)
             rad = render_rays(atm, rays, spl, view["view_samples"], view_rule)
             sp["combined_radiance_error"] = relative_radiance_error(rad, rad_ref)

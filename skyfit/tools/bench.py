@@ -33,10 +33,18 @@ import os
 import platform
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
+
+from ..atmosphere import load_atmosphere
+from ..camera import FisheyeCamera, render_fisheye
+from ..render import delta_e_1976, spectral_to_xyz_matrix
+from ..transmittance import INTEGRATORS, integrator_class, make_integrator
 
 SKIPPED_METHODS: dict[str, str] = {
     "height_fog": "skipped: the flat height-fog column refuses full skies (long horizon rays exceed its curvature bound)",
@@ -145,6 +153,17 @@ class BenchRow:
 
 
 # -- machine and plan ----------------------------------------------------------
+@contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """Run the block with ``n`` torch intra-op threads; the previous count is restored on exit (also on error)."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(int(n))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
 def machine_info(device: str) -> dict:
     """CPU model, threads, torch version and the device's name, for the report."""
     cpu = platform.processor() or platform.machine()
@@ -175,8 +194,6 @@ def method_settings(plan: BenchPlan) -> tuple[list[tuple[str, dict, int | None]]
     Quadrature methods get one entry per light-sample count of the plan; the
     others run with their default settings (closed forms and tables: light samples None).
     """
-    from .transmittance import INTEGRATORS, integrator_class
-
     entries: list[tuple[str, dict, int | None]] = []
     notes: list[str] = []
     for name in INTEGRATORS:
@@ -215,9 +232,6 @@ def _prepare(integrator, atm, device: str):
 def _render_set(atm, integrator, column_fn, plan: BenchPlan, view_samples: int, rule: str, device: str, progress=None):
     """Render every sun zenith -> (spectral radiance of the valid pixels per image as float64 numpy (P, W),
     wall seconds, process CPU seconds)."""
-    from .camera import FisheyeCamera
-    from .render import render_fisheye
-
     cam = FisheyeCamera(plan.size)
     images, elapsed, cpu = [], 0.0, 0.0
     for zen in plan.sun_zeniths_deg:
@@ -244,8 +258,6 @@ def errors_against(reference: list[np.ndarray], images: list[np.ndarray], wavele
         wavelengths_nm: shape (W,). [nm]
         white_percentile: each image pair is scaled by this percentile of the reference luminance. [%]
     """
-    from .render import delta_e_1976, spectral_to_xyz_matrix
-
     m = spectral_to_xyz_matrix(torch.as_tensor(wavelengths_nm, dtype=torch.float64)).numpy()
     sq, count, de = 0.0, 0, []
     for ref, img in zip(reference, images):
@@ -353,6 +365,7 @@ def markdown_table(rows: list[BenchRow]) -> str:
 
 def pareto_plot(rows: list[BenchRow], path: Path, title: str) -> None:
     """Time per image against mean ΔE (log-log), one colour per method, the frontier as a step line."""
+    # matplotlib stays a local import: heavy, and needed only to draw this plot.
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -430,17 +443,10 @@ def run_bench(out: Path, quick: bool = False, device: str = "cpu", as_json: bool
     Returns:
         The summary written to ``bench.json``.
     """
-    from tqdm import tqdm
-
-    from .atmosphere import load_atmosphere
-    from .transmittance import make_integrator
-
     plan = plan or (QUICK_PLAN if quick else FULL_PLAN)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    old_threads = torch.get_num_threads()
-    torch.set_num_threads(BENCH_THREADS if threads is None else int(threads))
-    try:
+    with torch_threads(BENCH_THREADS if threads is None else threads):
         lam = np.asarray(plan.wavelengths_nm, float)
         dtype = {"float32": torch.float32, "float64": torch.float64}[plan.dtype]
         atm = load_atmosphere("earth", lam, dtype=dtype, device=device)
@@ -518,8 +524,6 @@ def run_bench(out: Path, quick: bool = False, device: str = "cpu", as_json: bool
         if torch.get_num_threads() != BENCH_THREADS:
             summary["command"] += f" (run with {torch.get_num_threads()} torch thread(s), not BENCH_THREADS = {BENCH_THREADS})"
         _write_outputs(out, rows, summary, plan)
-    finally:
-        torch.set_num_threads(old_threads)
     if as_json:
         print(json.dumps(summary))
     else:

@@ -23,7 +23,27 @@ import time
 from pathlib import Path
 
 import numpy as np
+import skimage.io
 import torch
+
+from .. import __version__
+from ..atmosphere import atmosphere_from_config, load_yaml
+from ..camera import FisheyeCamera, render_fisheye
+from ..export import export_luts
+from ..fit.data import noise_sigma
+from ..fit.results import atmosphere_from_result
+from ..fit.run import run_fit
+from ..fit.sample import run_sample
+from ..io import write_exr
+from ..io.atomic import atomic_path, write_text_atomic
+from ..render import spectral_to_xyz, tonemap_srgb8, xyz_to_linear_srgb
+from ..scattering.bruneton_tables import TableSizes
+from ..scattering.hillaire import hillaire_lut
+from ..scattering.multiple import precompute
+from ..transmittance import make_integrator
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+"""The package's shipped atmosphere configs (skyfit/configs)."""
 
 TRUTH = {
     "rayleigh_scale": 1.0,
@@ -41,9 +61,7 @@ NOISE = (0.01, 0.005)
 
 def truth_config() -> dict:
     """The earth config with the demo's true aerosol and albedo (a plain config dict)."""
-    from .atmosphere import load_yaml
-
-    cfg = copy.deepcopy(load_yaml(Path(__file__).parent / "configs" / "earth.yaml"))
+    cfg = copy.deepcopy(load_yaml(CONFIGS / "earth.yaml"))
     cfg["name"] = "demo_truth"
     cfg["rayleigh"]["scale"] = TRUTH["rayleigh_scale"]
     cfg["mie"].pop("angstrom_beta", None)
@@ -57,9 +75,7 @@ def truth_config() -> dict:
 
 def fit_config(quick: bool) -> dict:
     """What the user would pass as --config: the plain earth config (the fit starts from its values) + fit:."""
-    from .atmosphere import load_yaml
-
-    cfg = copy.deepcopy(load_yaml(Path(__file__).parent / "configs" / "earth.yaml"))
+    cfg = copy.deepcopy(load_yaml(CONFIGS / "earth.yaml"))
     cfg["fit"] = {
         "free": list(TRUTH), "orders": 2, "multiple": "hillaire", "integrator": "chapman", "view_samples": 16,
         "rule": "gauss", "starts": 1, "sun_disc_deg": 3.0, "min_elevation_deg": 2.0,
@@ -68,12 +84,6 @@ def fit_config(quick: bool) -> dict:
 
 
 def _render_truth(size: int, lam: np.ndarray, quick: bool):
-    from .atmosphere import atmosphere_from_config
-    from .camera import FisheyeCamera
-    from .render import render_fisheye
-    from .scattering.hillaire import hillaire_lut
-    from .transmittance import make_integrator
-
     atm = atmosphere_from_config(truth_config(), lam)
     with torch.no_grad():  # the paper's LUT (the fit uses 16 x 16 texels)
         lut = hillaire_lut(atm, size=(32, 32), directions=64, samples=20)
@@ -84,11 +94,6 @@ def _render_truth(size: int, lam: np.ndarray, quick: bool):
 
 def _write_observation(out: Path, atm, img, seed: int) -> tuple[Path, Path]:
     """truth.exr (noise-free) and observed.exr (noisy, with its noise model in the header)."""
-    from . import __version__
-    from .fit.data import noise_sigma
-    from .io import write_exr
-    from .render import spectral_to_xyz, xyz_to_linear_srgb
-
     spec = img.spectral.detach().cpu().double()
     valid = img.valid.cpu()
     median = float(spec[valid].median())
@@ -117,11 +122,6 @@ def _write_observation(out: Path, atm, img, seed: int) -> tuple[Path, Path]:
 
 
 def _png(path: Path, rgb: np.ndarray, valid: np.ndarray) -> None:
-    import skimage.io
-
-    from .io.atomic import atomic_path
-    from .render import tonemap_srgb8
-
     exposure = 1.0 / max(float(np.percentile(rgb.mean(-1)[valid], 90)), 1e-12)
     with atomic_path(path, ".tmp.png") as tmp:
         skimage.io.imsave(tmp, tonemap_srgb8(rgb, exposure), check_contrast=False)
@@ -161,9 +161,6 @@ def _table(rows: list[dict], units: dict) -> str:
 
 def run_demo(out: str | Path, quick: bool = False, progress: bool = False, log=print, seed: int = 0) -> dict:
     """Run the whole demo into ``out``; return the summary dict (also ``out/demo.json``)."""
-    from .fit.run import run_fit
-    from .io.atomic import write_text_atomic
-
     t_start = time.perf_counter()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -235,8 +232,6 @@ full data's); the ratio to the Laplace widths of the same subsample is what it c
 
 def _sample(observed_exr: Path, out: Path, progress: bool, log) -> dict | None:
     """``skyfit sample`` around the fit on a pixel subsample: posterior, corner and trace plots in ``out/posterior``."""
-    from .fit.sample import run_sample
-
     cfg = fit_config(False)
     cfg["sample"] = {"walkers": 12, "steps": 150, "predictive_draws": 16, "max_samples": SAMPLE_PIXELS}
     summ = run_sample([observed_exr], cfg, out / "RESULT.json", out / "posterior", progress=progress)
@@ -250,11 +245,6 @@ def _sample(observed_exr: Path, out: Path, progress: bool, log) -> dict | None:
 
 def _export(result: dict, lut_dir: Path, quick: bool) -> Path:
     """Bruneton LUTs of the fitted atmosphere (what ``skyfit export-lut`` writes), small tables with ``quick``."""
-    from .export import export_luts
-    from .fit.results import atmosphere_from_result
-    from .scattering.bruneton_tables import TableSizes
-    from .scattering.multiple import precompute
-
     atm = atmosphere_from_result(result, result["model"]["wavelengths_nm"])
     sizes = TableSizes(64, 16, 32, 8, 8, 16, 8, 4) if quick else TableSizes(128, 32, 32, 8, 16, 64, 16, 8)
     with torch.no_grad():

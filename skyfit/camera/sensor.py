@@ -1,376 +1,35 @@
-"""Photographs as data: LDR photo loading, censored likelihood, exposure scale, synthetic photos.
+"""Synthetic photos: a rendered spectral sky through a camera's sensor, with its noise model.
 
-Two directions meet here:
-
-* **Measured LDR photos** (JPEG/PNG, 8 or 16 bit) are read with scikit-image,
-  decoded to linear values with the sRGB transfer function (IEC 61966-2-1,
-  written in torch here so that it is differentiable; it equals
-  ``colour.cctf_decoding(..., function='sRGB')``), and pixels at the ends of
-  the code range are flagged as *censored*: a saturated pixel says only "at
-  least this bright", a black one "at most this bright". The exposure of an
-  LDR photo is unknown: it is a scale fitted with :func:`fit_exposure_scale`
-  or profiled out, and :func:`censored_gaussian_nll` scores a model against
-  such data (Tobit likelihood: Gaussian density for measured pixels, Gaussian
-  tail probability for censored ones).
-* **Synthetic photos** (:func:`synthesize_photo`) turn a rendered spectral sky
-  into raw sensor values with an explicit noise model: camera RGB (CIE 1931
-  -> linear sRGB by default, or given spectral sensitivities), exposure
-  (camera signal -> expected electrons), vignetting, shot noise (Poisson, or
-  its Gaussian approximation for gradients), saturation at the full well,
-  read noise, gain, quantisation to whole DN and clipping to the DN range,
-  optionally followed by sRGB encoding to 8-bit codes. The result carries the
-  per-pixel expected value and variance and the saturation mask, so a fit can
-  weight or censor pixels.
+**Synthetic photos** (:func:`synthesize_photo`) turn a rendered spectral sky
+into raw sensor values with an explicit noise model: camera RGB (CIE 1931
+-> linear sRGB by default, or given spectral sensitivities), exposure
+(camera signal -> expected electrons), vignetting, shot noise (Poisson, or
+its Gaussian approximation for gradients), saturation at the full well,
+read noise, gain, quantisation to whole DN and clipping to the DN range,
+optionally followed by sRGB encoding to 8-bit codes. The result carries the
+per-pixel expected value and variance and the saturation mask, so a fit can
+weight or censor pixels (:meth:`SyntheticPhoto.observation` gives the
+:class:`~skyfit.camera.photo_io.PhotoObservation` a fit sees).
 
 Units: camera signal in the units of the camera response (linear sRGB of XYZ
 with 683 lm/W by default: Y in cd/m^2, CONTRACT.md); electrons [e-]; raw
-values in DN (digital numbers); LDR photo values linear in [0, 1].
+values in DN (digital numbers).
 """
 from __future__ import annotations
 
 import dataclasses
 import functools
 import math
-import os
 from typing import Callable, Sequence, Union
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from ..render.colour import spectral_to_xyz, xyz_to_linear_srgb
 from .fisheye import FisheyeCamera, rho_to_theta
-
-# --------------------------------------------------------------------------- sRGB transfer function
-
-SRGB_A: float = 0.055
-"""sRGB transfer-function offset a [1]. IEC 61966-2-1:1999, §4.7 (also colour-science's ``eotf_inverse_sRGB``)."""
-SRGB_GAMMA: float = 2.4
-"""sRGB transfer-function exponent [1]. IEC 61966-2-1:1999."""
-SRGB_LINEAR_SLOPE: float = 12.92
-"""Slope of the linear toe of the sRGB curve [1]. IEC 61966-2-1:1999."""
-SRGB_ENCODED_BREAK: float = 0.04045
-"""Encoded value where the toe ends [1]. IEC 61966-2-1:1999."""
-SRGB_LINEAR_BREAK: float = 0.0031308
-"""Linear value where the toe ends [1]. IEC 61966-2-1:1999."""
-
-DEFAULT_CLIP_LEVEL: float = 254.0 / 255.0
-"""Encoded value at and above which an LDR pixel counts as saturated (censored high). [1]"""
-DEFAULT_BLACK_LEVEL: float = 1.0 / 255.0
-"""Encoded value at and below which an LDR pixel counts as black (censored low). [1]"""
-
-
-def srgb_decode(encoded: Tensor) -> Tensor:
-    """Linear values from sRGB-encoded values (the sRGB EOTF), differentiable.
-
-    Same formula as ``colour.cctf_decoding(v, function='sRGB')``
-    (IEC 61966-2-1): ``v / 12.92`` for ``v <= 0.04045``, else
-    ``((v + 0.055) / 1.055) ** 2.4``. Both branches are evaluated on clamped
-    arguments so that neither produces NaN for the values it does not serve.
-
-    Args:
-        encoded: shape (...), nominally in [0, 1]. [1]
-
-    Returns:
-        Linear values, shape (...). [1]
-    """
-    low = encoded / SRGB_LINEAR_SLOPE
-    high = ((torch.clamp(encoded, min=SRGB_ENCODED_BREAK) + SRGB_A) / (1 + SRGB_A)) ** SRGB_GAMMA
-    return torch.where(encoded <= SRGB_ENCODED_BREAK, low, high)
-
-
-def srgb_encode(linear: Tensor) -> Tensor:
-    """sRGB-encoded values from linear values (inverse EOTF), differentiable.
-
-    Same formula as ``colour.cctf_encoding(v, function='sRGB')``.
-
-    Args:
-        linear: shape (...), nominally in [0, 1]. [1]
-
-    Returns:
-        Encoded values, shape (...). [1]
-    """
-    low = linear * SRGB_LINEAR_SLOPE
-    high = (1 + SRGB_A) * torch.clamp(linear, min=SRGB_LINEAR_BREAK) ** (1 / SRGB_GAMMA) - SRGB_A
-    return torch.where(linear <= SRGB_LINEAR_BREAK, low, high)
-
-
-def _srgb_encode_slope(linear: Tensor) -> Tensor:
-    """d srgb_encode / d linear, shape (...)."""
-    high = (1 + SRGB_A) / SRGB_GAMMA * torch.clamp(linear, min=SRGB_LINEAR_BREAK) ** (1 / SRGB_GAMMA - 1)
-    return torch.where(linear <= SRGB_LINEAR_BREAK, torch.full_like(linear, SRGB_LINEAR_SLOPE), high)
-
-
-# --------------------------------------------------------------------------- observations
-
-
-@dataclasses.dataclass
-class PhotoObservation:
-    """A photo as data for a fit.
-
-    Attributes:
-        rgb: linear values, shape (H, W, 3); for an LDR photo the decoded
-            sRGB in [0, 1], for a raw photo (DN - black) / (max DN - black). [1]
-        valid: pixels to use (alpha channel, fisheye disc), shape (H, W), bool.
-        censored_high: channel clipped at the top, shape (H, W, 3), bool.
-        censored_low: channel clipped at the bottom, shape (H, W, 3), bool.
-        bit_depth: bits per channel of the stored values (8, 16, or the raw depth).
-        clip_high: linear value at and above which a channel is censored high. [1]
-        clip_low: linear value at and below which a channel is censored low. [1]
-        exposure_unknown: True when ``rgb`` relates to radiance by an unknown
-            scale (always so for LDR files): fit it with :func:`fit_exposure_scale`.
-        exposure_scale: the scale ``rgb ~= exposure_scale * camera_signal`` when known.
-        path: the file the photo came from, if any.
-    """
-
-    rgb: Tensor
-    valid: Tensor
-    censored_high: Tensor
-    censored_low: Tensor
-    bit_depth: int
-    clip_high: float
-    clip_low: float
-    exposure_unknown: bool = True
-    exposure_scale: float | None = None
-    path: str | None = None
-
-    @property
-    def censored(self) -> Tensor:
-        """Pixels with any channel censored (saturated or black), shape (H, W), bool."""
-        return (self.censored_high | self.censored_low).any(-1)
-
-    @property
-    def usable(self) -> Tensor:
-        """Valid and uncensored pixels, shape (H, W), bool."""
-        return self.valid & ~self.censored
-
-
-def _check_levels(clip_level: float, black_level: float) -> None:
-    if not 0.0 <= black_level < clip_level <= 1.0:
-        raise ValueError(f"need 0 <= black_level < clip_level <= 1 (encoded values), got black_level={black_level}, clip_level={clip_level}")
-
-
-def _observation_from_encoded(
-    codes: Tensor, max_code: int, bit_depth: int, clip_level: float, black_level: float, valid: Tensor, path: str | None
-) -> PhotoObservation:
-    enc = codes / max_code
-    # Compare codes, not floats, so that code 254 of 255 is >= 254/255 whatever the rounding.
-    high = codes >= clip_level * max_code - 1e-6
-    low = codes <= black_level * max_code + 1e-6
-    dt = codes.dtype
-    return PhotoObservation(
-        rgb=srgb_decode(enc),
-        valid=valid,
-        censored_high=high,
-        censored_low=low,
-        bit_depth=bit_depth,
-        clip_high=float(srgb_decode(torch.tensor(clip_level, dtype=dt))),
-        clip_low=float(srgb_decode(torch.tensor(black_level, dtype=dt))),
-        exposure_unknown=True,
-        path=path,
-    )
-
-
-def _png_bit_depth(path: str) -> int | None:
-    """Bit depth from a PNG's IHDR chunk, or None for a file that is not PNG."""
-    with open(path, "rb") as f:
-        head = f.read(25)
-    if len(head) < 25 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
-        return None
-    return head[24]
-
-
-def load_ldr_photo(
-    path: str | os.PathLike,
-    *,
-    clip_level: float = DEFAULT_CLIP_LEVEL,
-    black_level: float = DEFAULT_BLACK_LEVEL,
-    valid: Tensor | None = None,
-    dtype: torch.dtype = torch.float64,
-    device: torch.device | str = "cpu",
-) -> PhotoObservation:
-    """Read an 8- or 16-bit sRGB JPEG/PNG/TIFF as linear values with censoring masks.
-
-    The file is read with ``skimage.io.imread`` (16-bit RGB needs TIFF: the
-    Pillow reader behind it decodes 16-bit RGB PNG to 8 bits, which is refused); codes are divided by the
-    largest code (255 or 65535) and decoded with :func:`srgb_decode`. A
-    channel is censored high when its encoded value is >= ``clip_level`` and
-    censored low when it is <= ``black_level``. An alpha channel marks the
-    pixels with alpha below its maximum as invalid. The exposure is unknown.
-
-    Args:
-        path: a JPEG, PNG or TIFF file, RGB or RGBA, 8 or 16 bits per channel.
-        clip_level: encoded value in (0, 1] at and above which a channel is saturated. [1]
-        black_level: encoded value in [0, 1) at and below which a channel is black. [1]
-        valid: optional mask of usable pixels (e.g. the fisheye disc), shape (H, W), bool.
-        dtype, device: of the returned tensors.
-
-    Returns:
-        A :class:`PhotoObservation` with ``rgb`` of shape (H, W, 3).
-
-    Raises:
-        FileNotFoundError: no such file.
-        ValueError: unreadable, not RGB(A), not 8/16-bit integer, a 16-bit PNG
-            read as 8 bits, or a bad mask or level.
-    """
-    _check_levels(clip_level, black_level)
-    p = os.fspath(path)
-    if not os.path.isfile(p):
-        raise FileNotFoundError(f"photo not found: {p}")
-    import skimage.io
-
-    try:
-        arr = skimage.io.imread(p)
-    except Exception as e:  # noqa: BLE001 - reader errors vary by plugin
-        raise ValueError(f"cannot read photo {p}: {e}") from None
-    arr = np.asarray(arr)
-    if arr.dtype == np.uint8 and _png_bit_depth(p) == 16:
-        # Pillow (skimage's reader) turns 16-bit RGB(A) PNG into 8 bits without a word.
-        raise ValueError(
-            f"photo {p}: a 16-bit RGB PNG that the installed reader (Pillow) decodes to 8 bits only; "
-            "save it as a 16-bit TIFF instead"
-        )
-    if arr.ndim != 3 or arr.shape[-1] not in (3, 4):
-        raise ValueError(f"photo {p}: expected an RGB or RGBA image of shape (H, W, 3|4), got shape {arr.shape}")
-    if arr.dtype == np.uint8:
-        bits = 8
-    elif arr.dtype == np.uint16:
-        bits = 16
-    else:
-        raise ValueError(f"photo {p}: expected 8- or 16-bit integer channels, got {arr.dtype}")
-    max_code = 2**bits - 1
-    mask = torch.ones(arr.shape[:2], dtype=torch.bool, device=device)
-    if arr.shape[-1] == 4:
-        mask = torch.as_tensor(arr[..., 3] == max_code, device=device)
-    if valid is not None:
-        if tuple(valid.shape) != arr.shape[:2]:
-            raise ValueError(f"photo {p}: valid mask has shape {tuple(valid.shape)}, image is {arr.shape[:2]}")
-        mask = mask & valid.to(device=device, dtype=torch.bool)
-    codes = torch.as_tensor(arr[..., :3].astype(np.float64), device=device).to(dtype)
-    return _observation_from_encoded(codes, max_code, bits, clip_level, black_level, mask, p)
-
-
-# --------------------------------------------------------------------------- likelihood and exposure
-
-
-def censored_gaussian_nll(
-    model: Tensor,
-    observed: Tensor,
-    sigma: Tensor | float,
-    censored_high: Tensor | None = None,
-    censored_low: Tensor | None = None,
-    *,
-    clip_high: Tensor | float | None = None,
-    clip_low: Tensor | float | None = None,
-    mask: Tensor | None = None,
-    reduction: str = "sum",
-) -> Tensor:
-    """Negative log-likelihood of data with Gaussian noise, censored at both ends (Tobit).
-
-    Per element, with ``z = (observed - model) / sigma``:
-
-    * measured: ``0.5 z^2 + log(sigma) + 0.5 log(2 pi)``;
-    * censored high (true value + noise >= clip_high):
-      ``-log(1 - Phi((clip_high - model)/sigma)) = -log_ndtr((model - clip_high)/sigma)``;
-    * censored low (true value + noise <= clip_low): ``-log_ndtr((clip_low - model)/sigma)``.
-
-    ``torch.special.log_ndtr`` is finite and smooth for any finite argument
-    (about ``-x^2/2`` deep in the tail), so a clipped pixel whose model lies far
-    below the clip still pulls it up with a finite gradient.
-
-    Args:
-        model: predicted values, shape (...). [data units]
-        observed: measured values, broadcastable to ``model``. [data units]
-        sigma: noise standard deviation, > 0, broadcastable. [data units]
-        censored_high, censored_low: bool masks, broadcastable; not both at once.
-        clip_high, clip_low: clip levels, broadcastable; default: ``observed``
-            (a clipped value is the clip level). [data units]
-        mask: bool, broadcastable; False elements contribute 0.
-        reduction: ``'sum'``, ``'mean'`` (over the elements in ``mask``) or ``'none'``.
-
-    Returns:
-        Shape () for 'sum'/'mean', the broadcast shape for 'none'. [nat]
-    """
-    if reduction not in ("sum", "mean", "none"):
-        raise ValueError(f"unknown reduction {reduction!r}; valid: sum, mean, none")
-    sigma = torch.as_tensor(sigma, dtype=model.dtype, device=model.device)
-    if not bool(torch.all(sigma > 0)):
-        raise ValueError("censored_gaussian_nll: sigma must be > 0 everywhere")
-    observed = torch.as_tensor(observed, dtype=model.dtype, device=model.device)
-    z = (observed - model) / sigma
-    nll = 0.5 * z**2 + torch.log(sigma) + 0.5 * math.log(2 * math.pi)
-    if censored_high is not None and censored_low is not None and bool(torch.any(censored_high & censored_low)):
-        raise ValueError("censored_gaussian_nll: an element is censored both high and low")
-    if censored_high is not None:
-        c = observed if clip_high is None else torch.as_tensor(clip_high, dtype=model.dtype, device=model.device)
-        nll = torch.where(censored_high, -torch.special.log_ndtr((model - c) / sigma), nll)
-    if censored_low is not None:
-        c = observed if clip_low is None else torch.as_tensor(clip_low, dtype=model.dtype, device=model.device)
-        nll = torch.where(censored_low, -torch.special.log_ndtr((c - model) / sigma), nll)
-    if mask is not None:
-        mask = torch.broadcast_to(mask, nll.shape)
-        nll = torch.where(mask, nll, torch.zeros_like(nll))
-    if reduction == "none":
-        return nll
-    if reduction == "sum":
-        return nll.sum()
-    n = nll.numel() if mask is None else int(mask.sum())
-    return nll.sum() / max(n, 1)
-
-
-EXPOSURE_FIT_METHODS = ("linear", "log")
-
-
-def fit_exposure_scale(
-    model_rgb: Tensor,
-    observed_rgb: Tensor,
-    mask: Tensor | None = None,
-    *,
-    weights: Tensor | None = None,
-    method: str = "linear",
-) -> Tensor:
-    """Closed-form scale k with ``observed ~= k * model``: the unknown exposure of a photo.
-
-    * ``'linear'``: weighted least squares in linear space,
-      ``k = sum(w m o) / sum(w m^2)``; the maximum-likelihood scale for
-      additive Gaussian noise of variance ``1 / w`` (pass ``w = 1 / variance``),
-      unbiased for zero-mean noise. Use it by default.
-    * ``'log'``: least squares of ``log o - log m``,
-      ``k = exp(sum(w (log o - log m)) / sum(w))``; the ML scale for
-      multiplicative (log-normal) noise. With additive noise it is biased by
-      about ``-var / (2 o^2)`` in log k; it needs positive values.
-
-    Censored pixels must be left out through ``mask``. Differentiable in both inputs.
-
-    Args:
-        model_rgb: model values, shape (..., 3) or any shape. [model units]
-        observed_rgb: observed values, same shape. [data units]
-        mask: bool, broadcastable (e.g. (H, W, 1) or (H, W, 3)); True = use.
-        weights: non-negative weights, broadcastable. [1/data units^2]
-        method: ``'linear'`` or ``'log'``.
-
-    Returns:
-        k, shape (). [data units / model units]
-    """
-    if method not in EXPOSURE_FIT_METHODS:
-        raise ValueError(f"unknown exposure-fit method {method!r}; valid: {', '.join(EXPOSURE_FIT_METHODS)}")
-    m, o = torch.broadcast_tensors(model_rgb, observed_rgb.to(model_rgb.dtype))
-    w = torch.ones_like(m) if weights is None else torch.broadcast_to(weights.to(m.dtype), m.shape)
-    if mask is not None:
-        w = torch.where(torch.broadcast_to(mask, m.shape), w, torch.zeros_like(w))
-    if method == "linear":
-        den = (w * m * m).sum()
-        if not bool(den > 0):
-            raise ValueError("fit_exposure_scale: no pixel with weight > 0 and model != 0 in the mask")
-        return (w * m * o).sum() / den
-    used = w > 0
-    if not bool(used.any()):
-        raise ValueError("fit_exposure_scale: empty mask")
-    if not bool(torch.all((m[used] > 0) & (o[used] > 0))):
-        raise ValueError("fit_exposure_scale(method='log'): model and observed must be > 0 in the mask (mask out censored-low pixels)")
-    one = torch.ones_like(m)
-    d = torch.log(torch.where(used, o, one)) - torch.log(torch.where(used, m, one))
-    return torch.exp((w * d).sum() / w.sum())
-
+from .photo_io import DEFAULT_BLACK_LEVEL, DEFAULT_CLIP_LEVEL, PhotoObservation, observation_from_encoded
+from .srgb import srgb_encode, srgb_encode_slope
 
 # --------------------------------------------------------------------------- camera response
 
@@ -488,13 +147,13 @@ class SyntheticPhoto:
     ) -> PhotoObservation:
         """The photo as a :class:`PhotoObservation` (what a fit sees).
 
-        ``'srgb8'``: decoded and censored exactly as :func:`load_ldr_photo`
+        ``'srgb8'``: decoded and censored exactly as :func:`~skyfit.camera.photo_io.load_ldr_photo`
         (exposure unknown). ``'raw'``: ``rgb = (DN - black) / (max DN - black)``,
         censored high where saturated, low where black; the exposure is known:
         ``rgb ~= exposure_scale * vignetting * camera_signal``.
         """
         if self.output == "srgb8":
-            return _observation_from_encoded(self.image, 255, 8, clip_level, black_level, self.valid, None)
+            return observation_from_encoded(self.image, 255, 8, clip_level, black_level, self.valid, None)
         span = self.max_dn - self.black_level
         return PhotoObservation(
             rgb=(self.image - self.black_level) / span,
@@ -507,7 +166,6 @@ class SyntheticPhoto:
             exposure_unknown=False,
             exposure_scale=self.exposure * self.gain / span,
         )
-
 
 
 def _pixel_grid(h: int, w: int, dtype, device) -> tuple[Tensor, Tensor]:
@@ -628,7 +286,7 @@ def synthesize_photo(
     (delta method) and 1/12 code^2 is added.
 
     Args:
-        image: a :class:`skyfit.render.SkyImage`, or spectral radiance of shape
+        image: a :class:`skyfit.camera.SkyImage`, or spectral radiance of shape
             (H, W, W_l) [W/(m^2 sr nm)] with ``wavelengths``.
         wavelengths: shape (W_l,), when ``image`` is a tensor. [nm]
         camera: for vignetting's radius and projection (default: the SkyImage's,
@@ -688,8 +346,6 @@ def synthesize_photo(
 
     # ---- camera signal
     if camera_response is None:
-        from ..render.colour import spectral_to_xyz, xyz_to_linear_srgb
-
         signal = xyz_to_linear_srgb(spectral_to_xyz(spectral, wl))
     else:
         if isinstance(camera_response, tuple):
@@ -751,7 +407,7 @@ def synthesize_photo(
         img = enc + (torch.round(enc) - enc).detach()
         xm = torch.clamp((mean - black_level) / span, 0.0, 1.0)
         mean_out = 255.0 * srgb_encode(xm)
-        var_out = (255.0 * _srgb_encode_slope(xm) / span) ** 2 * (var - 1.0 / 12.0) + 1.0 / 12.0
+        var_out = (255.0 * srgb_encode_slope(xm) / span) ** 2 * (var - 1.0 / 12.0) + 1.0 / 12.0
     else:
         img, mean_out, var_out = dn, mean, var
 
@@ -774,20 +430,13 @@ def synthesize_photo(
     )
 
 
+
 __all__ = [
-    "DEFAULT_BLACK_LEVEL",
-    "DEFAULT_CLIP_LEVEL",
-    "EXPOSURE_FIT_METHODS",
     "NOISE_MODELS",
-    "PhotoObservation",
+    "OUTPUTS",
     "SyntheticPhoto",
     "VIGNETTING_MODELS",
-    "censored_gaussian_nll",
-    "fit_exposure_scale",
-    "load_ldr_photo",
     "spectral_response_matrix",
-    "srgb_decode",
-    "srgb_encode",
     "synthesize_photo",
     "vignetting_map",
 ]

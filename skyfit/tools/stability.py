@@ -30,8 +30,8 @@ What is counted (:func:`radiance_scene`, :func:`column_errors`):
 * refusals: a method that raises ValueError for a group is counted as refusing
   it, with its message (the documented regimes: chapman, height_fog);
 * errors: optical-depth columns along the view segments and the sun rays
-  against the float64 scipy quadrature :func:`skyfit.reference.column_quad`, as
-  the relative error of :func:`skyfit.reference.relative_column_error`.
+  against the float64 scipy quadrature :func:`skyfit.tools.reference.column_quad`, as
+  the relative error of :func:`skyfit.tools.reference.relative_column_error`.
 """
 from __future__ import annotations
 
@@ -44,10 +44,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .atmosphere import Atmosphere, load_atmosphere
-from .geometry import atmosphere_segment, distance_to_top, point_along_ray
+from ..atmosphere import Atmosphere, load_atmosphere
+from ..geometry import atmosphere_segment, distance_to_top, point_along_ray
+from ..scattering import single_scattering
+from ..scattering.bruneton_tables import TableSizes
+from ..scattering.hillaire import hillaire_lut, hillaire_sky_radiance
+from ..scattering.multiple import Quadrature, precompute, sky_radiance
+from ..scattering.single import sun_ray_cosine
+from ..transmittance import INTEGRATORS, make_integrator
 from .reference import column_quad, relative_column_error
-from .transmittance import INTEGRATORS, make_integrator
 
 WAVELENGTHS_NM: tuple[float, float] = (440.0, 680.0)
 """Two wavelengths: enough for the spectral code paths (matmul over W). [nm]"""
@@ -70,6 +75,10 @@ MIE_SSA: float = 0.9
 GRADIENT_LEAVES: tuple[str, ...] = (
     "rayleigh_scattering", "mie_scattering", "mie_extinction", "rayleigh_scale_height", "mie_scale_height", "mie_g", "ground_albedo",
 )
+"""Fields of :class:`~skyfit.atmosphere.Atmosphere` made leaves requiring grad: the renderer's raw
+coefficients (per-wavelength beta_R, beta_M^s, beta_M^e, albedo; H_R, H_M, g), not the fit's
+parameters (:data:`skyfit.fit.parameters.PARAMETERS`: scales, beta_550, AOD, Angstrom alpha, ssa...,
+which map onto these), so they are not derived from that table."""
 
 # Per-method settings: the defaults, except where precomputation would dominate the run time.
 REPORT_SETTINGS: dict[str, dict] = {name: {} for name in INTEGRATORS}
@@ -299,8 +308,6 @@ def evaluate_group(render: Callable[[Tensor, Tensor, Tensor, Tensor], Tensor], g
 
 
 def single_renderer(name: str, settings: dict, atm: Atmosphere, view_samples: int = 16) -> Callable:
-    from .scattering import single_scattering
-
     integ = make_integrator(name, **settings)
     column_fn = integ.prepare(atm.scale_heights, atm.bottom_radius, atm.top_radius)  # tables once per atmosphere
 
@@ -321,9 +328,6 @@ HILLAIRE_LUT = dict(size=(8, 8), directions=16, samples=8)
 
 def bruneton_renderer(atm: Atmosphere, orders: int = 3, below_mu_s_min: str = "raise") -> Callable:
     """Bruneton & Neyret 2008 tables (small sizes) for ``atm``, and their lookup."""
-    from .scattering.bruneton_tables import TableSizes
-    from .scattering.multiple import Quadrature, precompute, sky_radiance
-
     tables = precompute(atm, orders=orders, sizes=TableSizes(**MULTIPLE_TABLE_SIZES), quadrature=Quadrature(**MULTIPLE_QUADRATURE))
 
     def render(r, mu, mu_s, nu):
@@ -334,9 +338,6 @@ def bruneton_renderer(atm: Atmosphere, orders: int = 3, below_mu_s_min: str = "r
 
 def hillaire_renderer(atm: Atmosphere, integrator: str = "gauss", settings: dict | None = None, view_samples: int = 16) -> Callable:
     """Hillaire 2020's multiple-scattering LUT (small) plus single scattering with ``integrator``."""
-    from .scattering.bruneton_tables import TableSizes
-    from .scattering.hillaire import hillaire_lut, hillaire_sky_radiance
-
     sizes = TableSizes(transmittance_mu=MULTIPLE_TABLE_SIZES["transmittance_mu"], transmittance_r=MULTIPLE_TABLE_SIZES["transmittance_r"])
     lut = hillaire_lut(atm, transmittance_sizes=sizes, transmittance_samples=MULTIPLE_QUADRATURE["transmittance_samples"], **HILLAIRE_LUT)
     integ = make_integrator(integrator, **(FAST_SETTINGS.get(integrator, {}) if settings is None else settings))
@@ -404,8 +405,6 @@ def column_segments(grid: Grid, atm: Atmosphere) -> list[tuple[str, str, float, 
     observer (inside the atmosphere) to the top, along max(mu_s, horizon) as
     single scattering does.
     """
-    from .scattering.single import sun_ray_cosine
-
     Rb, Rt = atm.bottom_radius, atm.top_radius
     out = []
     T = lambda v: torch.tensor([v], dtype=torch.float64)  # noqa: E731
@@ -551,8 +550,6 @@ def radiance_errors(
     Returns:
         ``{(dtype, axis, value): {"n", "max_rel_err", "worst", "refused", "messages"}}``.
     """
-    from .scattering import single_scattering
-
     cache = {} if cache is None else cache
     integ = make_integrator(name, **settings)
     cells: dict = defaultdict(lambda: {"n": 0, "max_rel_err": 0.0, "worst": "", "refused": 0, "messages": set()})

@@ -15,7 +15,7 @@ For each setting and scene it records
   tracemalloc) or ``torch.cuda.max_memory_allocated`` on CUDA,
 * the error against a converged reference: RMSE [mW/(m^2 sr nm)], relative RMS error
   ||L - L_ref|| / ||L_ref|| and mean CIE 1976 ΔE (white: the 99th percentile of the
-  reference's luminance, as :mod:`skyfit.bench`).
+  reference's luminance, as :mod:`skyfit.tools.bench`).
 
 References (float64): single scattering with Gauss-Legendre optical depth (32 nodes) and a
 128-node Gauss-Legendre view integral; multiple scattering adds to that the orders >= 2 of
@@ -35,6 +35,7 @@ that :mod:`skyfit.render.auto` chooses from; shipped as ``skyfit/data/auto_setti
 from __future__ import annotations
 
 import csv
+import ctypes
 import dataclasses
 import io
 import json
@@ -47,8 +48,18 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
-from .bench import _write_atomic, machine_info, pareto_front
+from ..atmosphere import load_atmosphere
+from ..camera import FisheyeCamera, render_fisheye
+from ..geometry import zenith_azimuth_to_enu
+from ..render import delta_e_1976, spectral_to_xyz_matrix
+from ..render.auto import choose, describe, parse_accuracy
+from ..scattering.bruneton_tables import TableSizes
+from ..scattering.hillaire import hillaire_lut
+from ..scattering.multiple import precompute, sky_radiance
+from ..transmittance import make_integrator, parse_integrator
+from .bench import _write_atomic, machine_info, pareto_front, torch_threads
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,8 +175,6 @@ QUICK_TRADE_PLAN = TradePlan(
 
 
 def _sizes(t):
-    from .scattering.bruneton_tables import TableSizes
-
     return TableSizes(scattering_r=t[0], scattering_mu=t[1], scattering_mu_s=t[2], scattering_nu=t[3])
 
 
@@ -209,8 +218,6 @@ def _status_mib(key: str) -> float:
 def _malloc_trim() -> None:
     """Give glibc's free heap pages back to the OS, so that a render's new pages show in the RSS."""
     try:
-        import ctypes
-
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):
         pass
@@ -267,8 +274,6 @@ def image_errors(ref: np.ndarray, img: np.ndarray, xyz_matrix: np.ndarray, white
         xyz_matrix: spectral -> XYZ matrix, shape (W, 3) (:func:`skyfit.render.spectral_to_xyz_matrix`).
         white_percentile: both images' XYZ are divided by this percentile of the reference luminance. [%]
     """
-    from .render import delta_e_1976
-
     if not np.all(np.isfinite(img)):
         return {"rmse_mw": math.nan, "rel_rmse": math.nan, "mean_delta_e": math.nan}
     diff = img - ref
@@ -281,9 +286,6 @@ def image_errors(ref: np.ndarray, img: np.ndarray, xyz_matrix: np.ndarray, white
 
 def bruneton_directions(atm, tables, camera, scene: Scene, orders: int) -> np.ndarray:
     """Radiance of the camera's valid pixels from Bruneton tables with ``orders`` orders, (P, W) float64 numpy."""
-    from .camera.fisheye import zenith_azimuth_to_enu
-    from .scattering.multiple import sky_radiance
-
     T = lambda v: torch.tensor(math.radians(v), dtype=atm.dtype, device=atm.device)  # noqa: E731
     view, valid = camera.pixel_vectors(atm.dtype, atm.device)
     view = view[valid]
@@ -314,23 +316,11 @@ def run_trade_study(out: Path, quick: bool = False, device: str = "cpu", as_json
     Returns:
         The summary written to ``trade.json``.
     """
-    from tqdm import tqdm
-
-    from .atmosphere import load_atmosphere
-    from .camera import FisheyeCamera
-    from .transmittance import parse_integrator
-    from .render import render_fisheye, spectral_to_xyz_matrix
-    from .scattering.hillaire import hillaire_lut
-    from .scattering.multiple import precompute
-    from .transmittance import make_integrator
-
     plan = plan or (QUICK_TRADE_PLAN if quick else FULL_TRADE_PLAN)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    old_threads = torch.get_num_threads()
-    torch.set_num_threads(1 if threads is None else int(threads))
-    t_start = time.perf_counter()
-    try:
+    with torch_threads(1 if threads is None else threads):
+        t_start = time.perf_counter()
         lam = np.asarray(plan.wavelengths_nm, float)
         dt = {"float32": torch.float32, "float64": torch.float64}
         atms = {k: load_atmosphere("earth", lam, dtype=v, device=device).replace(ozone_absorption=None) for k, v in dt.items()}
@@ -441,8 +431,6 @@ def run_trade_study(out: Path, quick: bool = False, device: str = "cpu", as_json
         summary = _summarise(plan, settings, results, ref_rows, ref_info, ms_share, machine, device, command,
                              time.perf_counter() - t_start)
         _write_trade_outputs(out, plan, summary, frontier_out)
-    finally:
-        torch.set_num_threads(old_threads)
     if as_json:
         print(json.dumps({k: v for k, v in summary.items() if k not in ("results",)}, default=str))
     else:
@@ -451,8 +439,6 @@ def run_trade_study(out: Path, quick: bool = False, device: str = "cpu", as_json
 
 
 def _label(s: dict) -> str:
-    from .render.auto import describe
-
     return describe(s)
 
 
@@ -542,8 +528,6 @@ def speed_ratio_de1(table: list[dict], target: float = 1.0, family: str = "singl
 
 
 def _short(r: dict) -> str:
-    from .render.auto import describe
-
     return describe(r)
 
 
@@ -554,8 +538,6 @@ reference itself is uncertain to about ΔE 1 and 2 %, see its reference check)."
 
 def auto_table(summary: dict) -> list[dict]:
     """Per scene and tolerance: the automatic choice, its measured error and cost, and the most expensive setting's cost."""
-    from .render.auto import choose, parse_accuracy
-
     fr = frontier_dict(summary)
     rows = []
     for sc in summary["scenes"]:
@@ -712,6 +694,7 @@ def trade_markdown(summary: dict, plan: TradePlan) -> str:
 
 
 def _trade_plot(summary: dict, path: Path) -> None:
+    # matplotlib stays a local import: heavy, and needed only to draw this plot.
     import matplotlib
 
     matplotlib.use("Agg")

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.integrate import quad
 
 
 def column_quad(r: float, mu: float, length: float, scale_height: float, bottom_radius: float, epsrel: float = 1e-10) -> float:
@@ -17,8 +18,6 @@ def column_quad(r: float, mu: float, length: float, scale_height: float, bottom_
     when it lies inside the segment, where the integrand peaks sharply for
     small H.
     """
-    from scipy.integrate import quad
-
     if length <= 0:
         return 0.0
 
