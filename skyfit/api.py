@@ -25,9 +25,7 @@ from .export import export_luts as _write_luts
 from .fit.data import Observation
 from .fit.model import SkyModel
 from .fit.optimise import fit as _optimise
-from .fit.priors import make_priors
 from .fit.problem import FitSettings, fit_settings, make_model, prepare
-from .fit.sample import sample_posterior
 from .fit.results import (atmosphere_from_result, check_result, model_from_result, read_result, result_dict,
                           save_result)
 from .render.auto import choose, parse_accuracy, setting_fields
@@ -338,6 +336,10 @@ def sample(fit_result: FitResult, *, walkers: int = 32, steps: int = 2000, seed:
         The summary: posterior median/percentiles/std per parameter, diagnostics (tau, acceptance,
         burn-in), Laplace comparison; ``chain_array`` (steps, walkers, P: unconstrained x) when kept in memory.
     """
+    # emcee (through scipy.stats) takes ~1.5 s to import: only a sampling session pays for it.
+    from .fit.priors import make_priors
+    from .fit.sample import sample_posterior
+
     if fit_result.problem is None:
         raise ValueError("sample needs a FitResult from skyfit.fit (a result read from a file has no data)")
     problem = fit_result.problem

@@ -6,13 +6,41 @@ written atomically, so a failed command leaves no partial file.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import math
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+import torch
+
+from . import __version__
+from .api import resolve_device
+from .atmosphere import ConfigError, load_atmosphere, read_config
+from .atmosphere.wavelengths import DEFAULT_WAVELENGTHS, parse_wavelengths
+from .camera import PROJECTIONS, FisheyeCamera, parse_location, parse_time, render_fisheye, sun_position
+from .export import FORMATS, export_luts
+from .fit.problem import FitSettings
+from .fit.report import dumps
+from .fit.results import atmosphere_from_result, read_result
+from .fit.run import run_evaluate, run_fit
+from .fit.select import format_table
+from .io import ExrError, write_exr
+from .io.atomic import write_text_atomic
+from .quadrature import RULES
+from .render.auto import choose, describe, parse_accuracy
+from .scattering.bruneton_tables import TableSizes
+from .scattering.hillaire import hillaire_lut
+from .scattering.multiple import precompute
+from .tools.bench import machine_info, run_bench
+from .tools.integrator_calibration import CALIBRATE_QUICK, calibrate_integrators
+from .tools.trade import run_trade_study
+from .transmittance import parse_integrator
+from .transmittance.spline import SPLINE_KINDS
 
 EXIT_USAGE = 2
 
@@ -21,23 +49,12 @@ class UserError(ValueError):
     """A mistake in the command line or its inputs."""
 
 
-# -- parsing helpers -----------------------------------------------------------
-# The spec parsers live with what they parse and raise ValueError; main() turns that into one line.
-from .atmosphere.wavelengths import DEFAULT_WAVELENGTHS, parse_wavelengths  # noqa: E402
-from .transmittance import parse_integrator  # noqa: E402
-from .atmosphere import read_config  # noqa: E402
-
-
 def _dtype(name: str):
-    import torch
-
     return {"float32": torch.float32, "float64": torch.float64}[name]
 
 
 def _check_device(device: str) -> str:
     """``--device``: cpu, cuda, cuda:N or auto -> the device name; one line when it is unknown or absent here."""
-    from .api import resolve_device
-
     try:
         return str(resolve_device(device))
     except ValueError as e:
@@ -60,8 +77,6 @@ def _floats(text: str | None, n: int, flag: str) -> list[float] | None:
 
 def _camera_from_args(args, size, projection):
     """The render command's camera options -> FisheyeCamera (docs/camera.md); absent options take defaults."""
-    from .camera import FisheyeCamera
-
     get = lambda name: getattr(args, name, None)  # noqa: E731  (demo passes a Namespace without them)
     kb = _floats(get("kb_coeffs"), 4, "--kb-coeffs")
     if kb is not None and projection != "kannala_brandt":
@@ -81,8 +96,6 @@ def _camera_from_args(args, size, projection):
 
 
 def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projection):
-    from .camera import render_fisheye
-
     cam = _camera_from_args(args, size, projection)
     extra = {}
     if args.orders > 1:
@@ -90,8 +103,6 @@ def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projecti
         if extra["multiple"] == "bruneton":
             extra["table_sizes"] = _table_sizes(getattr(args, "table_sizes", None))
         elif getattr(args, "hillaire_lut", None):  # N_H,N_MU_S,DIRECTIONS,SAMPLES (set by --accuracy)
-            from .scattering.hillaire import hillaire_lut
-
             nh, nm, nd, ns = (int(v) for v in args.hillaire_lut.split(","))
             extra["tables"] = hillaire_lut(atm, size=(nh, nm), directions=nd, samples=ns)
     return render_fisheye(
@@ -102,8 +113,6 @@ def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projecti
 
 def _table_sizes(text: str | None):
     """``R,MU,MUS,NU`` scattering-table sizes for --orders >= 2 (None: Bruneton 2017's 32,128,32,8)."""
-    from .scattering.bruneton_tables import TableSizes
-
     try:
         return TableSizes.parse(text) if text else None
     except ValueError as e:
@@ -111,8 +120,6 @@ def _table_sizes(text: str | None):
 
 
 def _exr_payload(img, atm, integrator, args, sun_zenith, sun_azimuth, spectral: bool):
-    from . import __version__
-
     rgb = img.rgb.detach().cpu().numpy()
     chans = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "Y": img.xyz[..., 1].detach().cpu().numpy()}
     if spectral:
@@ -148,8 +155,6 @@ def _sun_from_args(args) -> tuple[float, float, dict]:
     Returns also a dict for the EXR header (time, location, Earth-Sun distance when dated).
     """
     if args.time or args.location:
-        from .camera import parse_location, parse_time, sun_position
-
         if not (args.time and args.location):
             raise UserError("--time and --location go together (ISO 8601 time with offset, LAT,LON[,ELEV])")
         if args.sun_zenith is not None:
@@ -179,10 +184,6 @@ def _check_render_numbers(args) -> None:
 
 
 def cmd_render(args) -> int:
-    import torch
-
-    from .atmosphere import load_atmosphere
-    from .io import write_exr
 
     out = Path(args.out)
     if out.suffix.lower() != ".exr":
@@ -215,8 +216,6 @@ def cmd_render(args) -> int:
         info["accuracy"] = auto.summary()
     text = f"wrote {out} ({args.size}x{args.size}, {len(chans)} channels) in {elapsed:.2f} s"
     if auto is not None:
-        from .render.auto import describe
-
         text += f"; --accuracy {auto.tolerance}: {describe(auto.setting)} (measured {auto.predicted_error:.3g})"
     print(json.dumps(info) if args.json else text)
     return 0
@@ -224,8 +223,6 @@ def cmd_render(args) -> int:
 
 def _apply_accuracy(args, sun_zenith: float):
     """``--accuracy``: replace the renderer flags by the cheapest measured setting meeting it (skyfit.render.auto)."""
-    from .render.auto import choose, parse_accuracy
-
     try:
         choice = choose(parse_accuracy(args.accuracy), sun_zenith, args.altitude, orders=args.orders, dtype=args.dtype)
     except ValueError as e:
@@ -242,6 +239,7 @@ def _apply_accuracy(args, sun_zenith: float):
 
 def cmd_demo(args) -> int:
     """The main job on an embedded default: render, noise, fit, uncertainty, LUTs, truth vs recovered (skyfit.tools.demo)."""
+    # The demo samples (emcee, through scipy.stats) and writes PNGs (skimage): ~2 s of imports the others need not pay.
     from .tools.demo import run_demo
 
     _threads(args)
@@ -255,8 +253,6 @@ def cmd_demo(args) -> int:
 def _kider_site(args) -> dict:
     site: dict = {}
     if args.location:
-        from .camera import parse_location
-
         site["latitude"], site["longitude"], site["elevation"] = parse_location(args.location)
     if args.timezone is not None:
         if not (math.isfinite(args.timezone) and -14 <= args.timezone <= 14):
@@ -272,17 +268,12 @@ def _progress(args) -> bool:
 def _threads(args) -> None:
     """--threads N: torch's intra-op threads for this process (small fits on a busy machine: 1 is fastest)."""
     if args.threads is not None:
-        import torch
-
         if args.threads < 1:
             raise UserError(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
 
 
 def cmd_fit(args) -> int:
-    from .atmosphere import ConfigError
-    from .fit.run import run_fit
-
     _threads(args)
     cfg, source = read_config(args.config)
     overrides = {
@@ -308,13 +299,9 @@ def cmd_fit(args) -> int:
     if "selection" in res:
         summary["selection"] = {k: res["selection"][k] for k in ("chosen", "components", "heldout_choice", "heldout_agrees", "why")}
     if args.json:
-        from .fit.report import dumps
-
         print(dumps(summary, indent=None))
     else:
         if "selection" in res:
-            from .fit.select import format_table
-
             print(format_table(res["selection"]))
             print(f"chosen: {res['selection']['why']}")
         sig = res.get("laplace", {}).get("sigma", {})
@@ -327,9 +314,6 @@ def cmd_fit(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    from .fit.report import dumps
-    from .fit.run import run_evaluate
-
     _threads(args)
     res = run_evaluate(args.result, args.data, refit_nuisance=args.refit_nuisance, kider_site=_kider_site(args),
                        progress=_progress(args))
@@ -341,8 +325,6 @@ def cmd_evaluate(args) -> int:
 
 
 def cmd_sample(args) -> int:
-    from .atmosphere import ConfigError
-    from .fit.report import dumps
     from .fit.sample import run_sample
 
     _threads(args)
@@ -377,30 +359,31 @@ def cmd_sample(args) -> int:
 
 
 def _add_fit_parsers(sub) -> None:
+    D = FitSettings()  # the help states the defaults of the one definition
     f = sub.add_parser("fit", help="fit an atmosphere to fisheye EXR images or Kider captures (docs/fitting.md)")
     f.add_argument("data", nargs="+", help="an .exr fisheye, a Kider capture folder, or a folder of either (several: joint fit)")
     f.add_argument("--config", required=True, help="atmosphere config YAML with an optional fit: section (or a shipped name)")
     f.add_argument("--out", required=True, help="RESULT.json (plots are written beside it)")
     f.add_argument("--free", help="comma list of fitted parameters (docs/fitting.md), e.g. mie_beta_550,mie_g,exposure")
     f.add_argument("--per-observation", help="comma list of nuisance parameters with one value per observation")
-    f.add_argument("--integrator", help="NAME[:key=value,...] (default chapman)")
+    f.add_argument("--integrator", help=f"NAME[:key=value,...] (default {D.integrator})")
     f.add_argument("--orders", type=int, help="scattering orders (1 = single scattering, the default; >= 2 adds multiple scattering)")
     f.add_argument("--multiple", choices=("hillaire", "bruneton"),
                    help="with --orders >= 2: Hillaire 2020's LUT (default, rebuilt per evaluation) or Bruneton's tables (reduced sizes)")
-    f.add_argument("--view-samples", type=int, help="samples of the view-ray integral (default 16)")
-    f.add_argument("--rule", help="outer quadrature rule (default gauss)")
+    f.add_argument("--view-samples", type=int, help=f"samples of the view-ray integral (default {D.view_samples})")
+    f.add_argument("--rule", help=f"outer quadrature rule (default {D.rule})")
     f.add_argument("--accuracy", help="auto (model error <= 1/3 of the data's median relative sigma), de=X or rel=X: "
                    "the cheapest measured renderer setting meeting it replaces --integrator/--view-samples/--rule")
-    f.add_argument("--loss", help="squared, log, relative, huber, cauchy [:residual=...,delta=...] (default squared)")
-    f.add_argument("--starts", type=int, help="multi-start points (default 3)")
-    f.add_argument("--max-iter", type=int, help="L-BFGS iterations per start (default 100)")
-    f.add_argument("--adam-steps", type=int, help="Adam warm-start steps per start (default 10)")
-    f.add_argument("--seed", type=int, help="seed of the multi-start spread (default 0)")
+    f.add_argument("--loss", help=f"squared, log, relative, huber, cauchy [:residual=...,delta=...] (default {D.loss})")
+    f.add_argument("--starts", type=int, help=f"multi-start points (default {D.starts})")
+    f.add_argument("--max-iter", type=int, help=f"L-BFGS iterations per start (default {D.max_iter})")
+    f.add_argument("--adam-steps", type=int, help=f"Adam warm-start steps per start (default {D.adam_steps})")
+    f.add_argument("--seed", type=int, help=f"seed of the multi-start spread (default {D.seed})")
     f.add_argument("--wavelengths", help="model grid for RGB data, START:STOP:STEP or a list [nm]")
-    f.add_argument("--min-elevation", type=float, help="horizon mask: lowest elevation used [deg] (default 0)")
-    f.add_argument("--sun-mask", type=float, help="images: radius of the disc around the sun left out [deg] (default 2)")
+    f.add_argument("--min-elevation", type=float, help=f"horizon mask: lowest elevation used [deg] (default {D.min_elevation_deg:g})")
+    f.add_argument("--sun-mask", type=float, help=f"images: radius of the disc around the sun left out [deg] (default {D.sun_disc_deg:g})")
     f.add_argument("--max-samples", type=int, help="images: use every k-th pixel so that at most this many remain")
-    f.add_argument("--sigma-relative", type=float, help="images: relative noise when the header has none (default 0.01)")
+    f.add_argument("--sigma-relative", type=float, help=f"images: relative noise when the header has none (default {D.sigma_relative:g})")
     f.add_argument("--location", help="Kider data: LAT,LON[,ELEV] (default: the Kider site)")
     f.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
     f.add_argument("--no-plots", action="store_true", help="do not write PNG plots")
@@ -409,7 +392,7 @@ def _add_fit_parsers(sub) -> None:
                    help="choose the model by a ladder of nested models, BIC and held-out pixels (docs/selection.md)")
     f.add_argument("--select-sigma", choices=("scaled", "known"),
                    help="--select: data sigma known up to a fitted common factor (default) or exactly")
-    f.add_argument("--heldout", type=float, help="--select: fraction of samples held out of the fits (default 0.2)")
+    f.add_argument("--heldout", type=float, help=f"--select: fraction of samples held out of the fits (default {D.select_heldout:g})")
     f.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's; 1 is fastest for small fits on a busy machine)")
     f.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar (default: on a terminal)")
     f.add_argument("--json", action="store_true")
@@ -451,8 +434,6 @@ def _add_fit_parsers(sub) -> None:
 
 
 def cmd_bench(args) -> int:
-    from .tools.bench import run_bench
-
     if args.threads is not None and args.threads < 1:
         raise UserError(f"--threads must be >= 1, got {args.threads}")
     device = _check_device(args.device)
@@ -461,17 +442,12 @@ def cmd_bench(args) -> int:
     if args.study == "integrators":
         run_bench(out=Path(args.out), quick=args.quick, device=device, as_json=args.json, threads=args.threads)
         return 0
-    from .tools.trade import run_trade_study
-
     trade = lambda as_json: run_trade_study(out=Path(args.out), quick=args.quick, device=device, as_json=as_json,  # noqa: E731
                                             threads=args.threads, frontier_out=args.frontier_out and Path(args.frontier_out),
                                             command="skyfit " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["bench"] else None)
     if args.study == "trade":
         trade(args.json)
         return 0
-    import contextlib
-    import io
-
     if not args.json:
         run_bench(out=Path(args.out), quick=args.quick, device=device, threads=args.threads)
         trade(False)
@@ -486,18 +462,10 @@ def cmd_bench(args) -> int:
 
 def _write_json_atomic(path: Path, data: dict) -> None:
     """Write ``data`` as strict JSON (NaN refused) to a temporary file beside ``path``, then rename it."""
-    from .io.atomic import write_text_atomic
-
     write_text_atomic(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
 
 
 def cmd_calibrate_integrator(args) -> int:
-    import torch
-
-    from . import __version__
-    from .atmosphere import load_atmosphere
-    from .tools.bench import machine_info
-    from .tools.integrator_calibration import CALIBRATE_QUICK, calibrate_integrators
 
     out = Path(args.out)
     if out.suffix.lower() != ".json":
@@ -532,14 +500,7 @@ def cmd_calibrate_integrator(args) -> int:
 
 def cmd_export_lut(args) -> int:
     """Precompute Bruneton's tables for a fitted atmosphere and write them as LUTs (docs/luts.md)."""
-    import tempfile
 
-    import torch
-
-    from .export import export_luts
-    from .fit.results import atmosphere_from_result, read_result
-    from .scattering.bruneton_tables import TableSizes
-    from .scattering.multiple import precompute
 
     if args.orders < 1:
         raise UserError(f"--orders must be >= 1 (1 = single scattering), got {args.orders}")
@@ -581,9 +542,6 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .camera import PROJECTIONS
-    from .quadrature import RULES
-
     p = _Parser(prog="skyfit", description="Fit a physically based atmosphere to measured skies.")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -645,8 +603,6 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--json", action="store_true")
     b.set_defaults(func=cmd_bench)
 
-    from .transmittance.spline import SPLINE_KINDS
-
     c = sub.add_parser("calibrate-integrator", help="fit Taylor a, b; pick spline grid and view samples for an atmosphere")
     c.add_argument("config", help="atmosphere config YAML (or a shipped name: earth, mars, ...)")
     c.add_argument("--out", required=True, help="output .json file (docs/integrator_calibration.md)")
@@ -660,8 +616,6 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--quick", action="store_true", help="coarser domain, fewer rays and candidates (seconds, for CI)")
     c.add_argument("--json", action="store_true")
     c.set_defaults(func=cmd_calibrate_integrator)
-
-    from .export import FORMATS
 
     e = sub.add_parser("export-lut", help="precompute a fitted atmosphere's tables and write them as LUTs (docs/luts.md)")
     e.add_argument("result", help="RESULT.json written by skyfit fit")
@@ -677,9 +631,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .atmosphere import ConfigError
-    from .io import ExrError
-
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

@@ -14,7 +14,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from .optimise import FitOptions, fit
-from .parameters import NUISANCE, ORIENTATION, PARAMETERS, FitError, Parameterisation, check_names
+from .data import Observation
+from .parameters import NUISANCE, ORIENTATION, PARAMETERS, FitError, check_names
 from .losses import make_loss
 from .problem import fit_settings, load_data, prepare
 from .results import check_result_path, fitted_atmosphere_values, model_from_result, read_result, write_result

@@ -63,7 +63,6 @@ low-elevation rays are hundreds of km long).
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 import time
