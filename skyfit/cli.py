@@ -244,7 +244,7 @@ def cmd_demo(args) -> int:
 
     _threads(args)
     summary = run_demo(args.out, quick=args.quick, progress=_progress(args),
-                       log=(lambda *a, **k: None) if args.json else print)
+                       log=(lambda *a, **k: None) if args.json else print, device=_check_device(args.device))
     if args.json:
         print(json.dumps(summary))
     return 0
@@ -282,11 +282,12 @@ def cmd_fit(args) -> int:
         "max_iter": args.max_iter, "adam_steps": args.adam_steps, "seed": args.seed, "wavelengths": args.wavelengths,
         "min_elevation_deg": args.min_elevation, "sun_disc_deg": args.sun_mask, "max_samples": args.max_samples,
         "sigma_relative": args.sigma_relative, "accuracy": args.accuracy,
-        "select_sigma": args.select_sigma, "select_heldout": args.heldout,
+        "select_sigma": args.select_sigma, "select_heldout": args.heldout, "dtype": args.dtype,
     }
     try:
         res = run_fit(args.data, cfg, args.out, overrides=overrides, config_source=source, kider_site=_kider_site(args),
-                      plots=not args.no_plots, progress=_progress(args), laplace=args.laplace, select=args.select)
+                      plots=not args.no_plots, progress=_progress(args), laplace=args.laplace, select=args.select,
+                      device=_check_device(args.device))
     except ConfigError as e:
         raise ConfigError(f"config {source}: {e}") from None
     m, c = res["metrics"], res["convergence"]
@@ -316,7 +317,7 @@ def cmd_fit(args) -> int:
 def cmd_evaluate(args) -> int:
     _threads(args)
     res = run_evaluate(args.result, args.data, refit_nuisance=args.refit_nuisance, kider_site=_kider_site(args),
-                       progress=_progress(args))
+                       progress=_progress(args), device=_check_device(args.device))
     if args.json:
         print(dumps(res, indent=None))
     else:
@@ -340,7 +341,8 @@ def cmd_sample(args) -> int:
                  "batched": False if args.no_batch else None}
     try:
         res = run_sample(args.data, cfg, args.init, args.out, overrides=overrides, kider_site=_kider_site(args),
-                         resume=args.resume, progress=_progress(args), plots=not args.no_plots)
+                         resume=args.resume, progress=_progress(args), plots=not args.no_plots,
+                         device=_check_device(args.device))
     except ConfigError as e:
         raise ConfigError(f"config {source}: {e}") from None
     d = res["diagnostics"]
@@ -395,6 +397,8 @@ def _add_fit_parsers(sub) -> None:
     f.add_argument("--heldout", type=float, help=f"--select: fraction of samples held out of the fits (default {D.select_heldout:g})")
     f.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's; 1 is fastest for small fits on a busy machine)")
     f.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar (default: on a terminal)")
+    f.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
+    f.add_argument("--dtype", choices=("float32", "float64"), help=f"working precision (default {D.dtype})")
     f.add_argument("--json", action="store_true")
     f.set_defaults(func=cmd_fit)
 
@@ -406,6 +410,7 @@ def _add_fit_parsers(sub) -> None:
     e.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
     e.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar (default: on a terminal)")
     e.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's)")
+    e.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=cmd_evaluate)
 
@@ -429,6 +434,7 @@ def _add_fit_parsers(sub) -> None:
     sm.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
     sm.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's)")
     sm.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar with running tau (default: on a terminal)")
+    sm.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
     sm.add_argument("--json", action="store_true")
     sm.set_defaults(func=cmd_sample)
 
@@ -476,7 +482,7 @@ def cmd_calibrate_integrator(args) -> int:
         if not 0.0 < v < 1.0:
             raise UserError(f"{flag} must be in (0, 1), got {v}")
     lam = parse_wavelengths(args.wavelengths)
-    atm = load_atmosphere(args.config, lam, dtype=torch.float64)
+    atm = load_atmosphere(args.config, lam, dtype=torch.float64, device=_check_device(args.device))
     settings = dict(CALIBRATE_QUICK) if args.quick else {}
     t0 = time.perf_counter()
     res = calibrate_integrators(atm, tolerance=args.tolerance, transmittance_tolerance=args.transmittance_tolerance,
@@ -500,8 +506,7 @@ def cmd_calibrate_integrator(args) -> int:
 
 def cmd_export_lut(args) -> int:
     """Precompute Bruneton's tables for a fitted atmosphere and write them as LUTs (docs/luts.md)."""
-
-
+    device = _check_device(args.device)
     if args.orders < 1:
         raise UserError(f"--orders must be >= 1 (1 = single scattering), got {args.orders}")
     res = read_result(args.result)
@@ -520,7 +525,7 @@ def cmd_export_lut(args) -> int:
     except OSError as e:
         raise UserError(f"--out {out}: cannot write there ({e.strerror or e})") from None
     try:
-        atm = atmosphere_from_result(res, lam)
+        atm = atmosphere_from_result(res, lam, device=device)
     except (KeyError, TypeError) as e:
         raise UserError(f"{args.result}: malformed result ({e})") from None
     t0 = time.perf_counter()
@@ -576,7 +581,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--accuracy", help="auto (= de=1), de=X (mean ΔE) or rel=X (relative radiance error): the cheapest "
                    "measured setting meeting it replaces --integrator/--view-samples/--rule (and with --orders >= 2 "
                    "--multiple/--table-sizes); docs/benchmarks.md, 'Automatic settings'")
-    r.add_argument("--device", default="cpu")
+    r.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
     r.add_argument("--json", action="store_true")
     r.set_defaults(func=cmd_render)
 
@@ -586,6 +591,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--quick", action="store_true", help="48x48, 6 wavelengths, Laplace only: within a minute on 2 CPU cores")
     d.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's)")
     d.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bars (default: on a terminal)")
+    d.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
     d.add_argument("--json", action="store_true")
     d.set_defaults(func=cmd_demo)
     _add_fit_parsers(sub)
@@ -593,7 +599,7 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="speed/accuracy table of the transmittance integrators")
     b.add_argument("--out", default="bench_out")
     b.add_argument("--quick", action="store_true", help="a reduced table for CI")
-    b.add_argument("--device", default="cpu")
+    b.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
     b.add_argument("--threads", type=int, help="torch CPU threads (default: the bench's own choice, 2; trade study 1)")
     b.add_argument("--study", choices=("integrators", "trade", "all"), default="all",
                    help="integrators: Gałaj 2021 Table 3 (bench.md); trade: every renderer setting on fixed scenes "
@@ -614,6 +620,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--spline-kind", choices=SPLINE_KINDS, default="natural_cubic", help="spline kind of the grid search")
     c.add_argument("--wavelengths", default=DEFAULT_WAVELENGTHS, help="START:STOP:STEP or comma list [nm]")
     c.add_argument("--quick", action="store_true", help="coarser domain, fewer rays and candidates (seconds, for CI)")
+    c.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
     c.add_argument("--json", action="store_true")
     c.set_defaults(func=cmd_calibrate_integrator)
 
@@ -625,6 +632,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--table-sizes", help="R,MU,MUS,NU scattering-table sizes (default 32,128,32,8)")
     e.add_argument("--wavelengths", help="START:STOP:STEP or comma list [nm] (default: the fit's model wavelengths)")
     e.add_argument("--rgb", action="store_true", help="linear sRGB channels instead of one per wavelength")
+    e.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=cmd_export_lut)
     return p

@@ -166,7 +166,7 @@ def export_luts(tables: PrecomputedAtmosphere, atm: Atmosphere | None, out_dir: 
     atm = tables.atm if atm is None else atm
     out = Path(out_dir)
     lam = atm.wavelengths.detach().cpu().tolist()
-    m = rgb_matrix(atm.wavelengths) if rgb else None
+    m = rgb_matrix(atm.wavelengths.detach().cpu()) if rgb else None  # numpy below: tables from any device
 
     def chans(t: np.ndarray, prefix: str) -> dict[str, np.ndarray]:
         t = np.asarray(t, dtype=np.float64)

@@ -24,7 +24,7 @@ from .select import run_select
 
 def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overrides: dict | None = None,
             config_source: str = "", kider_site: dict | None = None, plots: bool = True, progress: bool = False,
-            laplace: bool = False, select: bool = False) -> dict:
+            laplace: bool = False, select: bool = False, device="cpu") -> dict:
     """Fit DATA, write RESULT.json (and plots beside it), return the result dict.
 
     Args:
@@ -38,6 +38,7 @@ def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overri
         progress: tqdm progress bar on stderr.
         laplace: add ``result["laplace"]``: sigma and correlation of every free parameter from the
             Hessian at the fit (:func:`skyfit.fit.laplace.laplace_summary`, docs/uncertainty.md).
+        device: where the fit runs (cpu, cuda, cuda:N; the observations and the atmosphere go there).
         select: choose the model by the ladder of :mod:`skyfit.fit.select` (docs/selection.md);
             RESULT.json then holds the chosen model and ``selection``.
     """
@@ -47,8 +48,8 @@ def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overri
         raise FitError(f"config {config_source}: must be a mapping")
     if select:  # the model ladder (skyfit.fit.select) chooses the atmosphere's components
         return run_select(data, config, out, overrides=overrides, config_source=config_source, kider_site=kider_site,
-                          plots=plots, progress=progress, laplace=laplace)
-    prep = prepare(data, config, fit_settings(config.get("fit"), overrides), kider_site=kider_site)
+                          plots=plots, progress=progress, laplace=laplace, device=device)
+    prep = prepare(data, config, fit_settings(config.get("fit"), overrides), kider_site=kider_site, device=device)
     problem = prep.fit_problem()
     s = prep.settings
     res = fit(problem, s.options(progress))
@@ -88,7 +89,8 @@ def _nuisance_for(res: dict, obs: Observation, name: str):
 
 
 def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_nuisance: bool = False,
-                 kider_site: dict | None = None, progress: bool = False, refit: Sequence[str] | None = None) -> dict:
+                 kider_site: dict | None = None, progress: bool = False, refit: Sequence[str] | None = None,
+                 device="cpu") -> dict:
     """How well a fitted atmosphere predicts DATA, with DATA's own sun position (CONTRACT.md).
 
     Without ``refit_nuisance`` the fitted exposure and offsets are used (the observation's own
@@ -109,7 +111,7 @@ def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_n
         raise FitError(f"{result_path}: malformed result ({e})".splitlines()[0]) from None
     observations = load_data(data, s, kider_site, None)
     try:
-        prep = prepare(observations, res["config"], s, model=model)
+        prep = prepare(observations, res["config"], s, model=model, device=device)
     except ValueError as e:
         raise FitError(f"{result_path}: its config cannot be rebuilt: {e}") from None
     dtype = s.torch_dtype
@@ -133,7 +135,7 @@ def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_n
         r = fit(problem, FitOptions(starts=1, adam_steps=10, max_iter=60, progress=progress))
         x, conv = r.x, r.convergence
     else:
-        x = param.initial_vector(dtype)
+        x = param.initial_vector(dtype, prep.base.device)
     metrics = problem.metrics(x)
     phys = param.physical_dict(x)
     return {

@@ -232,7 +232,7 @@ def sample_settings(section: dict | None, overrides: dict | None = None) -> Samp
 
 def build_problem(data, config: dict, init: dict, init_path, kider_site: dict | None, integrator: str | None = None,
                   view_samples: int | None = None, rule: str | None = None, accuracy: str | None = None,
-                  max_samples: int | None = None):
+                  max_samples: int | None = None, device="cpu"):
     """(problem, x0) for DATA with the fit settings, free set and fitted values of the RESULT.json ``init``.
 
     The masks, loss, noise model and renderer are the fit's (``init['settings']``); ``integrator``,
@@ -246,7 +246,7 @@ def build_problem(data, config: dict, init: dict, init_path, kider_site: dict | 
         raise SampleError(f"{init_path}: malformed fit settings ({e})") from None
     if not accuracy:  # the fit's own accuracy was resolved into its renderer fields when it ran
         s = dataclasses.replace(s, accuracy=None)
-    prep = prepare(data, config, s, kider_site=kider_site)
+    prep = prepare(data, config, s, kider_site=kider_site, device=device)
     s, observations = prep.settings, prep.observations
     free = list(init["free"])
     pars = init["parameters"]
@@ -262,14 +262,15 @@ def build_problem(data, config: dict, init: dict, init_path, kider_site: dict | 
     param, dtype = problem.param, s.torch_dtype
     fv = init.get("fitted_vector") or {}
     if all(n in fv for n in param.names):
-        x0 = torch.tensor([float(fv[n]) for n in param.names], dtype=dtype)
+        x0 = torch.tensor([float(fv[n]) for n in param.names], dtype=dtype, device=prep.base.device)
     else:
-        x0 = param.initial_vector(dtype)
+        x0 = param.initial_vector(dtype, prep.base.device)
     return problem, x0
 
 
 def run_sample(data, config: dict, init_path, out_dir, *, overrides: dict | None = None, kider_site: dict | None = None,
-               resume: bool = False, progress: bool = False, plots: bool = True, laplace: bool = True) -> dict:
+               resume: bool = False, progress: bool = False, plots: bool = True, laplace: bool = True,
+               device="cpu") -> dict:
     """``skyfit sample``: rebuild the fit's problem, sample it, write DIR/chain.h5, summary.json and plots."""
     init = read_result(init_path)
     if not init.get("free"):
@@ -280,10 +281,12 @@ def run_sample(data, config: dict, init_path, out_dir, *, overrides: dict | None
     t0 = time.perf_counter()
     cheap = ss.integrator is not None or ss.view_samples is not None or ss.rule is not None or ss.accuracy is not None
     problem, x0 = build_problem(data, config, init, init_path, kider_site, ss.integrator, ss.view_samples, ss.rule,
+                                device=device,
                                 accuracy=ss.accuracy, max_samples=ss.max_samples)
     final_problem = None
     if cheap:
-        final_problem, _ = build_problem(data, config, init, init_path, kider_site, max_samples=ss.max_samples)
+        final_problem, _ = build_problem(data, config, init, init_path, kider_site, max_samples=ss.max_samples,
+                                         device=device)
     P = problem.param.size
     if ss.walkers < 2 * P:
         raise SampleError(f"--walkers {ss.walkers} is fewer than 2 x {P} free parameters; use at least {2 * P}")

@@ -577,7 +577,8 @@ SELECT_NUISANCE = ("exposure",) + ORIENTATION
 
 
 def run_select(data, config: dict, out, *, overrides: dict | None = None, config_source: str = "",
-               kider_site: dict | None = None, plots: bool = True, progress: bool = False, laplace: bool = False) -> dict:
+               kider_site: dict | None = None, plots: bool = True, progress: bool = False, laplace: bool = False,
+               device="cpu") -> dict:
     """``skyfit fit --select``: climb the ladder on DATA, refit the chosen model on every pixel, write RESULT.json.
 
     Same arguments and RESULT.json as :func:`skyfit.fit.run.run_fit`, plus ``result["selection"]``
@@ -589,7 +590,8 @@ def run_select(data, config: dict, out, *, overrides: dict | None = None, config
     """
     t0 = time.perf_counter()
     out = check_result_path(out)
-    prep = prepare(data, config, fit_settings(config.get("fit"), overrides), kider_site=kider_site, orders=1)
+    prep = prepare(data, config, fit_settings(config.get("fit"), overrides), kider_site=kider_site, orders=1,
+                   device=device)
     s, observations = prep.settings, prep.observations
     rings = any("ring" in o.metadata for o in observations)
     nuisance = [n for n in (s.free or []) if n in SELECT_NUISANCE] if s.free is not None else \

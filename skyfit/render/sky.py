@@ -11,6 +11,7 @@ from torch import Tensor
 from ..atmosphere import Atmosphere
 from ..geometry import zenith_azimuth_to_enu
 from ..scattering import single_scattering
+from ..scattering.single import ray_parameters
 from ..scattering.hillaire import hillaire_sky_radiance
 from ..scattering.multiple import precompute, sky_radiance
 from ..transmittance import OpticalDepthIntegrator
@@ -56,13 +57,7 @@ def render_vectors(
     """
     if not (isinstance(orders, int) and orders >= 1):
         raise ValueError(f"orders must be an integer >= 1, got {orders!r}")
-    view = torch.as_tensor(view, dtype=atm.dtype, device=atm.device)
-    sun = torch.as_tensor(sun, dtype=atm.dtype, device=atm.device)
-    # mu, mu_s are the Up components; nu = v . s needs no angles, so it is smooth at the zenith.
-    mu = torch.clamp(view[..., 2], -1.0, 1.0)
-    mu_s = torch.clamp(sun[..., 2], -1.0, 1.0)
-    nu = torch.clamp((view * sun).sum(-1), -1.0, 1.0)
-    r = atm.bottom_radius + torch.as_tensor(altitude, dtype=atm.dtype, device=atm.device)
+    r, mu, mu_s, nu = ray_parameters(atm, view, sun, altitude)
     if orders == 1:
         return single_scattering(atm, r, mu, mu_s, nu, integrator, **kwargs)
     if multiple == "hillaire":

@@ -44,7 +44,7 @@ from ..transmittance import ozone_column
 from ..transmittance.chapman import ChapmanOpticalDepth, segment_geometry
 from ..transmittance.quadrature import QuadratureOpticalDepth
 from .phase import mie_phase, rayleigh_phase
-from .single import sun_ray_cosine, sun_visible_fraction, view_ray_samples
+from .single import ray_parameters, sun_ray_cosine, sun_visible_fraction, view_ray_samples
 
 
 # -- columns of segments with the scale height as a batched argument ----------------------------
@@ -240,12 +240,7 @@ class RayGeometry:
 
     def __init__(self, atm: Atmosphere, view: Tensor, sun: Tensor, altitude, integrator, view_samples: int, rule: str,
                  fixed_heights: dict[int, float]):
-        view = torch.as_tensor(view, dtype=atm.dtype, device=atm.device)
-        sun = torch.as_tensor(sun, dtype=atm.dtype, device=atm.device)
-        mu = torch.clamp(view[..., 2], -1.0, 1.0)
-        mu_s = torch.clamp(sun[..., 2], -1.0, 1.0)
-        nu = torch.clamp((view * sun).sum(-1), -1.0, 1.0)
-        r = atm.bottom_radius + torch.as_tensor(altitude, dtype=atm.dtype, device=atm.device)
+        r, mu, mu_s, nu = ray_parameters(atm, view, sun, altitude)
         r, mu, mu_s, nu = (t.reshape(-1) for t in torch.broadcast_tensors(r, mu, mu_s, nu))
         Rb, Rt = atm.bottom_radius, atm.top_radius
         x, w = nodes_weights(rule, view_samples, atm.dtype, atm.device)

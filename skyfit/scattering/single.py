@@ -118,6 +118,27 @@ class ViewRaySamples(NamedTuple):
     mus_j: Tensor  # sun cosines at the samples [1]
 
 
+def ray_parameters(atm: Atmosphere, view: Tensor, sun: Tensor, altitude) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(r, mu, mu_s, nu) of view and sun vectors seen from ``altitude``, in the atmosphere's dtype and device.
+
+    Args:
+        view: unit view directions East-North-Up, shape (..., 3). [1]
+        sun: unit direction to the sun, shape (3,) or (..., 3). [1]
+        altitude: observer height above the ground, scalar or shape (...). [m]
+
+    Returns:
+        r (distance from the planet centre) [m], mu, mu_s (the Up components) and nu = view . sun [1],
+        each clamped to [-1, 1]; nu needs no angles, so it is smooth at the zenith.
+    """
+    view = torch.as_tensor(view, dtype=atm.dtype, device=atm.device)
+    sun = torch.as_tensor(sun, dtype=atm.dtype, device=atm.device)
+    mu = torch.clamp(view[..., 2], -1.0, 1.0)
+    mu_s = torch.clamp(sun[..., 2], -1.0, 1.0)
+    nu = torch.clamp((view * sun).sum(-1), -1.0, 1.0)
+    r = atm.bottom_radius + torch.as_tensor(altitude, dtype=atm.dtype, device=atm.device)
+    return r, mu, mu_s, nu
+
+
 def view_ray_samples(atm: Atmosphere, r: Tensor, mu: Tensor, mu_s: Tensor, nu: Tensor, x: Tensor) -> ViewRaySamples:
     """Place the nodes ``x`` (on [0, 1]) of the outer rule on the in-atmosphere part of each view ray.
 

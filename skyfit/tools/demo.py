@@ -159,8 +159,12 @@ def _table(rows: list[dict], units: dict) -> str:
     return "\n".join(lines)
 
 
-def run_demo(out: str | Path, quick: bool = False, progress: bool = False, log=print, seed: int = 0) -> dict:
-    """Run the whole demo into ``out``; return the summary dict (also ``out/demo.json``)."""
+def run_demo(out: str | Path, quick: bool = False, progress: bool = False, log=print, seed: int = 0,
+             device="cpu") -> dict:
+    """Run the whole demo into ``out``; return the summary dict (also ``out/demo.json``).
+
+    ``device`` is where the fit, the sampler and the LUT precomputation run (the truth is rendered
+    on the CPU in float64, so that the observation is the same on every machine)."""
     t_start = time.perf_counter()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -177,7 +181,7 @@ def run_demo(out: str | Path, quick: bool = False, progress: bool = False, log=p
 
     t0 = time.perf_counter()
     result = run_fit([observed_exr], fit_config(quick), out / "RESULT.json", config_source="skyfit demo (earth + fit:)",
-                     plots=True, progress=progress, laplace=True)
+                     plots=True, progress=progress, laplace=True, device=device)
     timings["fit_s"] = time.perf_counter() - t0
     m = result["metrics"]
     log(f"fit: loss {m['loss']:.4g} (0.5 = the noise), rmse {m['rmse']:.3g} {m['rmse_units']}, "
@@ -186,11 +190,11 @@ def run_demo(out: str | Path, quick: bool = False, progress: bool = False, log=p
     posterior = None
     if not quick:
         t0 = time.perf_counter()
-        posterior = _sample(observed_exr, out, progress, log)
+        posterior = _sample(observed_exr, out, progress, log, device)
         timings["sample_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    lut_dir = _export(result, out / "luts", quick)
+    lut_dir = _export(result, out / "luts", quick, device)
     timings["export_s"] = time.perf_counter() - t0
     log(f"exported LUTs -> {lut_dir}")
 
@@ -230,11 +234,12 @@ pixels would take most of an hour on 2 CPU cores. 150 steps were 9 autocorrelati
 full data's); the ratio to the Laplace widths of the same subsample is what it checks."""
 
 
-def _sample(observed_exr: Path, out: Path, progress: bool, log) -> dict | None:
+def _sample(observed_exr: Path, out: Path, progress: bool, log, device="cpu") -> dict | None:
     """``skyfit sample`` around the fit on a pixel subsample: posterior, corner and trace plots in ``out/posterior``."""
     cfg = fit_config(False)
     cfg["sample"] = {"walkers": 12, "steps": 150, "predictive_draws": 16, "max_samples": SAMPLE_PIXELS}
-    summ = run_sample([observed_exr], cfg, out / "RESULT.json", out / "posterior", progress=progress)
+    summ = run_sample([observed_exr], cfg, out / "RESULT.json", out / "posterior", progress=progress,
+                      device=device)
     ratios = ", ".join(f"{n} {'-' if r['ratio'] is None else format(r['ratio'], '.2f')}"
                        for n, r in (summ.get("laplace_vs_emcee") or {}).items())
     log(f"emcee on {SAMPLE_PIXELS} pixels: {summ['sampler']['steps']} steps x {summ['sampler']['walkers']} walkers, "
@@ -243,9 +248,9 @@ def _sample(observed_exr: Path, out: Path, progress: bool, log) -> dict | None:
     return summ
 
 
-def _export(result: dict, lut_dir: Path, quick: bool) -> Path:
+def _export(result: dict, lut_dir: Path, quick: bool, device="cpu") -> Path:
     """Bruneton LUTs of the fitted atmosphere (what ``skyfit export-lut`` writes), small tables with ``quick``."""
-    atm = atmosphere_from_result(result, result["model"]["wavelengths_nm"])
+    atm = atmosphere_from_result(result, result["model"]["wavelengths_nm"], device=device)
     sizes = TableSizes(64, 16, 32, 8, 8, 16, 8, 4) if quick else TableSizes(128, 32, 32, 8, 16, 64, 16, 8)
     with torch.no_grad():
         tables = precompute(atm, orders=4, sizes=sizes)
