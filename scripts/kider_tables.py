@@ -34,6 +34,11 @@ ROOT = Path(__file__).resolve().parents[1]
 DAY = ROOT.parent / "shared" / "data" / "kider2014" / "2013-05-27"
 CONFIG = ROOT / "configs" / "kider.yaml"
 PUBLISHED = "23.5-26.6 (Bruneton 2017's fixed-parameter models on these captures)"
+REFERENCE_SOURCE = (
+    "The \"independent reference model\" column and the published 23.5-26.6 are quoted from the text of issue 5 "
+    "(the reference: \"an independent reference model (spectral, single + multiple scattering, fitted with scipy)\", "
+    "run on these captures outside this project); nothing in this repository or in ../shared/data computes them, "
+    "and they are not reproduced here.")
 
 
 def _captures(day: Path) -> list[Path]:
@@ -174,7 +179,8 @@ def _summary(work: Path, caps: list[str], fits: dict) -> list[str]:
         return []
     out = ["## Summary", "", "| | skyfit | independent reference model | target (issue 5) |", "|---|---|---|---|"]
     out += [f"| {a} | {b} | {c} | {d} |" for a, b, c, d in rows]
-    out += ["", f"Published fixed-parameter models on these captures: {PUBLISHED}.", ""]
+    out += ["", f"Published fixed-parameter models on these captures: {PUBLISHED}.", "",
+            REFERENCE_SOURCE, ""]
     return out
 
 

@@ -5,7 +5,7 @@ scattering; noon or twilight), climbs the ladder with ``sigma="known"`` and prin
 table, the reason for the choice, the held-out check and the CPU time (process time: the
 machine is shared). The sky helpers are the tests' own (tests/test_select.py).
 
-    .venv/bin/python scripts/select_synthetic.py > /tmp/scenarios.md
+    .venv/bin/python scripts/select_synthetic.py      # Markdown on stdout (docs/selection.md pastes it)
 """
 from __future__ import annotations
 

@@ -26,7 +26,6 @@ import json
 import math
 import os
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +33,7 @@ import torch
 from torch import Tensor
 
 from ..atmosphere import Atmosphere
+from ..io.atomic import make_temp_dir
 from ..scattering.bruneton_tables import TableSizes, extinction_matrix3
 from ..scattering.multiple import PrecomputedAtmosphere, Quadrature
 
@@ -63,10 +63,10 @@ def unpack_scattering(a: np.ndarray, sizes: TableSizes) -> np.ndarray:
 
 def rgb_matrix(wavelengths_nm: Tensor) -> Tensor:
     """(W, 3) matrix M with linear sRGB = spectrum @ M: CIE 1931 XYZ (683 lm/W) then XYZ -> sRGB (D65)."""
-    from ..render.colour import _srgb_matrix, spectral_to_xyz_matrix
+    from ..render.colour import xyz_to_srgb_matrix, spectral_to_xyz_matrix
 
     lam = wavelengths_nm.detach().cpu().double()
-    return spectral_to_xyz_matrix(lam) @ torch.as_tensor(_srgb_matrix(), dtype=torch.float64).T
+    return spectral_to_xyz_matrix(lam) @ torch.as_tensor(xyz_to_srgb_matrix(), dtype=torch.float64).T
 
 
 def _names(prefix: str, lam: list[float]) -> list[str]:
@@ -204,7 +204,7 @@ def export_luts(tables: PrecomputedAtmosphere, atm: Atmosphere | None, out_dir: 
         out.parent.mkdir(parents=True, exist_ok=True)
         if out.exists() and not out.is_dir():
             raise LutError(f"--out {out} exists and is not a directory")
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+        tmp = make_temp_dir(out)  # named so that a killed run's is recognised and removed (skyfit.io.atomic)
     except OSError as e:
         raise LutError(f"cannot write LUTs to {out}: {e.strerror or e}") from None
     try:

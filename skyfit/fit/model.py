@@ -19,7 +19,7 @@ from torch import Tensor
 
 from ..atmosphere import Atmosphere
 from ..camera.fisheye import zenith_azimuth_to_enu
-from ..render.colour import _srgb_matrix, spectral_to_xyz_matrix
+from ..render.colour import xyz_to_srgb_matrix, spectral_to_xyz_matrix
 from ..transmittance import OpticalDepthIntegrator
 from .data import DataError, Observation
 from .losses import Loss
@@ -148,7 +148,7 @@ def channel_matrix(model_wavelengths: Tensor, obs: Observation) -> Tensor:
     lam = model_wavelengths
     if obs.kind == "rgb":
         xyz = spectral_to_xyz_matrix(lam)
-        return xyz @ torch.as_tensor(_srgb_matrix(), dtype=lam.dtype, device=lam.device).T
+        return xyz @ torch.as_tensor(xyz_to_srgb_matrix(), dtype=lam.dtype, device=lam.device).T
     wl = obs.wavelengths.to(lam.dtype)
     diff = (wl[None, :] - lam[:, None]).abs()
     hit = diff < 1e-6
@@ -294,7 +294,7 @@ def observation_metrics(pred: Tensor, obs: Observation) -> dict:
         xyz_meas, xyz_mod = meas @ m_xyz, mod @ m_xyz
     else:
         scale, units = 1.0, "linear sRGB (Y in cd/m^2)"
-        inv = torch.as_tensor(np.linalg.inv(_srgb_matrix()), dtype=torch.float64)
+        inv = torch.as_tensor(np.linalg.inv(xyz_to_srgb_matrix()), dtype=torch.float64)
         xyz_meas, xyz_mod = meas @ inv.T, mod @ inv.T
     err = (mod - meas) * scale
     rmse = float(torch.sqrt((err**2).mean()))

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from .data import Observation
-from ..render.colour import _srgb_matrix, spectral_to_xyz_matrix
+from ..render.colour import xyz_to_srgb_matrix, spectral_to_xyz_matrix
 from ..io.atomic import atomic_path, write_text_atomic  # noqa: F401  (write_text_atomic: re-exported)
 
 
@@ -64,7 +64,7 @@ def luminance(values: Tensor, obs: Observation) -> np.ndarray:
     v = values.detach().cpu().double()
     if obs.kind == "spectral":
         return (v @ spectral_to_xyz_matrix(obs.wavelengths.detach().cpu().double())[:, 1]).numpy()
-    inv = np.linalg.inv(_srgb_matrix())
+    inv = np.linalg.inv(xyz_to_srgb_matrix())
     return v.numpy() @ inv[1]
 
 

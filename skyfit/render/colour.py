@@ -61,7 +61,7 @@ def spectral_to_xyz(radiance: Tensor, wavelengths_nm: Tensor) -> Tensor:
 
 
 @functools.lru_cache(maxsize=1)
-def _srgb_matrix() -> np.ndarray:
+def xyz_to_srgb_matrix() -> np.ndarray:
     """XYZ -> linear sRGB, derived from the sRGB primaries and D65 (IEC 61966-2-1).
 
     colour's ``matrix_XYZ_to_RGB`` is the standard's 4-digit rounding, which maps
@@ -75,7 +75,7 @@ def _srgb_matrix() -> np.ndarray:
 
 def xyz_to_linear_srgb(xyz: Tensor) -> Tensor:
     """Linear sRGB (D65) from XYZ, shape (..., 3)."""
-    m = torch.as_tensor(_srgb_matrix(), dtype=xyz.dtype, device=xyz.device)
+    m = torch.as_tensor(xyz_to_srgb_matrix(), dtype=xyz.dtype, device=xyz.device)
     return xyz @ m.T
 
 

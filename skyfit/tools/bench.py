@@ -41,6 +41,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ..io.atomic import write_bytes_atomic
 from ..atmosphere import load_atmosphere
 from ..camera import FisheyeCamera, render_fisheye
 from ..render import delta_e_1976, spectral_to_xyz_matrix
@@ -331,12 +332,6 @@ def _row_dict(r: BenchRow) -> dict:
     return d
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_bytes(data)
-    tmp.replace(path)
-
-
 def _fmt(x: float, digits: int = 3) -> str:
     if x is None or not math.isfinite(x):
         return "—"
@@ -400,7 +395,7 @@ def pareto_plot(rows: list[BenchRow], path: Path, title: str) -> None:
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
-    _write_atomic(path, buf.getvalue())
+    write_bytes_atomic(path, buf.getvalue())
 
 
 def _ratio_text(summary: dict) -> str:
@@ -585,8 +580,8 @@ def _write_outputs(out: Path, rows: list[BenchRow], summary: dict, plan: BenchPl
     w.writeheader()
     for r in rows:
         w.writerow({k: ("" if v is None else v) for k, v in _row_dict(r).items()})
-    _write_atomic(out / "bench.csv", buf.getvalue().encode())
-    _write_atomic(out / "bench.json", json.dumps(summary, indent=1, default=str).encode())
+    write_bytes_atomic(out / "bench.csv", buf.getvalue().encode())
+    write_bytes_atomic(out / "bench.json", json.dumps(summary, indent=1, default=str).encode())
     mi = summary["machine"]
     title = (f"{plan.size}x{plan.size} fisheye, {len(plan.wavelengths_nm)} wavelengths, sun zeniths "
              f"{', '.join(f'{z:g}' for z in plan.sun_zeniths_deg)}°; {mi['cpu']}, {mi['torch_threads']} torch thread(s)")
@@ -615,4 +610,4 @@ def _write_outputs(out: Path, rows: list[BenchRow], summary: dict, plan: BenchPl
     ]
     if summary["notes"]:
         md += ["Notes:", ""] + [f"- {n}" for n in summary["notes"]] + [""]
-    _write_atomic(out / "bench.md", "\n".join(md).encode())
+    write_bytes_atomic(out / "bench.md", "\n".join(md).encode())

@@ -50,6 +50,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ..io.atomic import write_bytes_atomic
 from ..atmosphere import load_atmosphere
 from ..camera import FisheyeCamera, render_fisheye
 from ..geometry import zenith_azimuth_to_enu
@@ -59,7 +60,7 @@ from ..scattering.bruneton_tables import TableSizes
 from ..scattering.hillaire import hillaire_lut
 from ..scattering.multiple import precompute, sky_radiance
 from ..transmittance import make_integrator, parse_integrator
-from .bench import _write_atomic, machine_info, pareto_front, torch_threads
+from .bench import machine_info, pareto_front, torch_threads
 
 
 @dataclasses.dataclass(frozen=True)
@@ -601,15 +602,15 @@ def _write_trade_outputs(out: Path, plan: TradePlan, summary: dict, frontier_out
             row = {**{k: r.get(k) for k in _CSV_COLUMNS}, "scene": name, **scenes[name], **res}
             row["pareto"] = r["pareto"]
             w.writerow({k: ("" if row.get(k) is None else row.get(k)) for k in _CSV_COLUMNS})
-    _write_atomic(out / "trade.csv", buf.getvalue().encode())
-    _write_atomic(out / "trade.json", json.dumps(summary, indent=1, default=str).encode())
+    write_bytes_atomic(out / "trade.csv", buf.getvalue().encode())
+    write_bytes_atomic(out / "trade.json", json.dumps(summary, indent=1, default=str).encode())
     fr = json.dumps(frontier_dict(summary), indent=0, default=str).encode()
-    _write_atomic(out / "frontier.json", fr)
+    write_bytes_atomic(out / "frontier.json", fr)
     if frontier_out is not None:
         Path(frontier_out).parent.mkdir(parents=True, exist_ok=True)
-        _write_atomic(Path(frontier_out), fr)
+        write_bytes_atomic(Path(frontier_out), fr)
     _trade_plot(summary, out / "trade_pareto.png")
-    _write_atomic(out / "trade.md", trade_markdown(summary, plan).encode())
+    write_bytes_atomic(out / "trade.md", trade_markdown(summary, plan).encode())
 
 
 def trade_markdown(summary: dict, plan: TradePlan) -> str:
@@ -736,4 +737,4 @@ def _trade_plot(summary: dict, path: Path) -> None:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
-    _write_atomic(path, buf.getvalue())
+    write_bytes_atomic(path, buf.getvalue())
