@@ -30,6 +30,7 @@ from .fit.results import (atmosphere_from_result, check_result, model_from_resul
                           save_result)
 from .render.auto import choose, parse_accuracy, setting_fields
 from .render.colour import spectral_to_xyz, tonemap_srgb8, xyz_to_linear_srgb
+from .render.sky import render_vectors
 from .scattering.bruneton_tables import TableSizes
 from .scattering.multiple import PrecomputedAtmosphere, precompute
 
@@ -183,13 +184,44 @@ def render(atmosphere: Atmosphere, view: FisheyeCamera | Tensor, sun=None, *, ti
 
 
 def _disk_renderer(model: SkyModel, atm: Atmosphere, altitude: float):
+    """The renderer with the attenuated solar disc: a Bruneton lookup option that SkyModel does not carry."""
     if model.orders == 1 or model.multiple != "bruneton":
         raise ValueError("sun_disk needs orders >= 2 with multiple='bruneton'")
-    from .render.sky import render_vectors  # the disc is a Bruneton lookup option, not part of SkyModel
-
     tables = model.tables(atm)
     return lambda d, s: render_vectors(atm, d, s, model.integrator, altitude, model.orders, tables=tables,
                                        multiple="bruneton", ground=model.ground, sun_disk=True)
+
+
+def envmap(source: "FitResult | Atmosphere", sun=None, *, time: str | None = None, location=None, size: int = 512,
+           layout: str = "latlong", sun_disk: bool = False, orders: int = 4, multiple: str = "bruneton",
+           table_sizes=None, accuracy: str | None = None, altitude: float = 0.0, model: SkyModel | None = None,
+           spectral: bool = True):
+    """An HDR environment map of a (fitted) sky: :class:`skyfit.export.envmap.EnvMap` (docs/envmap.md).
+
+    Args:
+        source: a :class:`FitResult` (its atmosphere on the fit's wavelengths) or an :class:`Atmosphere`.
+        sun, time, location: as :func:`render`.
+        size: lat-long height H (width 2H) or cube face edge, even. [px]
+        layout: ``latlong`` (row 0 straight up, azimuth 0 = North at the left edge) or ``cubemap``.
+        sun_disk: add the solar disc (energy-conserving at any resolution).
+        orders, multiple, table_sizes, accuracy, altitude, model: the renderer, as :func:`render`
+            (default: 4 orders of Bruneton's tables at 2017's sizes; ``table_sizes`` R,MU,MUS,NU).
+    """
+    from .export.envmap import render_envmap
+
+    atm = source.atmosphere() if isinstance(source, FitResult) else source
+    s = sun_vector(sun, time=time, location=location, dtype=atm.dtype, device=atm.device)
+    if model is None:
+        zen = math.degrees(math.acos(max(-1.0, min(1.0, float(s[2])))))
+        model = render_model(accuracy, orders, multiple, zen, altitude, "float64" if atm.dtype == torch.float64 else "float32")
+        if table_sizes is not None and model.orders > 1 and model.multiple == "bruneton":
+            sizes = table_sizes if isinstance(table_sizes, TableSizes) else TableSizes.parse(table_sizes)
+            model = dataclasses.replace(model, table_sizes=dataclasses.astuple(sizes))
+    fn = model.renderer(atm, altitude)
+    meta = {"renderer": {**model.integrator.settings(), **model.settings()}, "observer_altitude_m": altitude,
+            "atmosphere": atm.summary()}
+    return render_envmap(atm, s, lambda d: fn(d, s), size=size, layout=layout, sun_disk=sun_disk, spectral=spectral,
+                         altitude=altitude, meta=meta)
 
 
 # -- fitting ----------------------------------------------------------------------------------------
@@ -372,5 +404,5 @@ def export_luts(source: FitResult | Atmosphere, out_dir: str | Path | None = Non
     return tables
 
 
-__all__ = ["ACCURATE", "FitResult", "Sky", "check_result", "export_luts", "fit", "load_atmosphere", "load_result",
+__all__ = ["ACCURATE", "FitResult", "Sky", "check_result", "envmap", "export_luts", "fit", "load_atmosphere", "load_result",
            "read_config", "render", "render_model", "resolve_device", "sample", "sun_vector"]
