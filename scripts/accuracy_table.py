@@ -13,7 +13,7 @@ import time
 import numpy as np
 import torch
 
-from skyfit.reference import accuracy_cases, column_quad, relative_column_error
+from skyfit.tools.reference import accuracy_cases, column_quad, relative_column_error
 from skyfit.transmittance import make_integrator
 
 BOTTOM, TOP = 6_360_000.0, 6_420_000.0
@@ -94,7 +94,7 @@ def main(argv=None):
         "mu straight up and down, 0.5, 0.1, -0.1, the horizontal 0 and +-1e-6 around it, the geometric horizon",
         "mu_h = -sqrt(1 - (R/r)^2) and mu_h +- 1e-6; each segment to the ground or the top, and again half way.",
         f"Earth radii {BOTTOM:.0f} / {TOP:.0f} m; Rayleigh H = 8000 m, Mie H = 1200 m. Relative error |c - ref| / max(ref, 1 mm)",
-        "(a 1 mm column error changes transmittance by < 1e-5 for beta <= 1e-2 /m; see skyfit.reference).",
+        "(a 1 mm column error changes transmittance by < 1e-5 for beta <= 1e-2 /m; see skyfit.tools.reference).",
         "",
         f"Made by `.venv/bin/python scripts/accuracy_table.py` on {platform.processor() or platform.machine()}, torch {torch.__version__}.",
         "",

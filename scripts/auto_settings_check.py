@@ -24,10 +24,10 @@ import numpy as np
 import torch
 
 from skyfit.atmosphere import load_atmosphere
-from skyfit.bench_trade import Scene, _sizes, bruneton_directions, image_errors
-from skyfit.camera import FisheyeCamera
+from skyfit.tools.trade import Scene, _sizes, bruneton_directions, image_errors
+from skyfit.camera import FisheyeCamera, render_fisheye
 from skyfit.transmittance import parse_integrator
-from skyfit.render import render_fisheye, spectral_to_xyz_matrix
+from skyfit.render import spectral_to_xyz_matrix
 from skyfit.render.auto import choose, describe, load_frontier, parse_accuracy
 from skyfit.scattering.hillaire import hillaire_lut
 from skyfit.scattering.multiple import precompute

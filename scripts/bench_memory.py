@@ -38,8 +38,7 @@ def child(size: int, dtype_name: str, integrator: str, settings: dict, device: s
     import torch
 
     from skyfit.atmosphere import load_atmosphere
-    from skyfit.camera import FisheyeCamera
-    from skyfit.render import render_fisheye
+    from skyfit.camera import FisheyeCamera, render_fisheye
     from skyfit.transmittance import make_integrator
 
     torch.set_num_threads(threads)

@@ -46,8 +46,7 @@ def time_renders(device: str, size: int, n_wavelengths: int, view_samples: int, 
 
     import skyfit
     from skyfit.atmosphere import load_atmosphere
-    from skyfit.camera import FisheyeCamera
-    from skyfit.render import render_fisheye
+    from skyfit.camera import FisheyeCamera, render_fisheye
     from skyfit.transmittance import make_integrator
 
     if compile_chunk:

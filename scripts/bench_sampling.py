@@ -34,7 +34,10 @@ from skyfit.atmosphere import atmosphere_from_config, load_yaml
 from skyfit.camera import FisheyeCamera
 from skyfit.fit import FitProblem, Observation, Parameterisation, SkyModel, make_loss
 from skyfit.fit.report import dumps, write_text_atomic
-from skyfit.fit.sample import LogPosterior, chain_diagnostics, make_priors, run_chain, initial_ball
+from skyfit.fit.chain import initial_ball, run_chain
+from skyfit.fit.diagnostics import chain_diagnostics
+from skyfit.fit.posterior import LogPosterior
+from skyfit.fit.priors import make_priors
 from skyfit.transmittance import make_integrator
 
 FREE = ["mie_beta_550", "mie_scale_height", "mie_g", "rayleigh_scale", "exposure"]

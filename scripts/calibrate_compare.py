@@ -23,9 +23,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from skyfit.atmosphere import load_atmosphere  # noqa: E402
-from skyfit.bench import machine_info  # noqa: E402
-from skyfit.fit import integrator_calibration as ic  # noqa: E402
-from skyfit.reference import column_quad  # noqa: E402
+from skyfit.tools.bench import machine_info  # noqa: E402
+from skyfit.tools import integrator_calibration as ic  # noqa: E402
+from skyfit.tools.reference import column_quad  # noqa: E402
 from skyfit.transmittance.taylor import TaylorOpticalDepth  # noqa: E402
 
 WAVELENGTHS = np.arange(400.0, 701.0, 20.0)  # the CLI's default grid
@@ -212,7 +212,7 @@ def main() -> int:
 
 HEADER = """# Integrator calibration: Taylor (a, b), spline grid, view samples
 
-`skyfit calibrate-integrator CONFIG --out integrator.json` (skyfit/fit/integrator_calibration.py) calibrates,
+`skyfit calibrate-integrator CONFIG --out integrator.json` (skyfit/tools/integrator_calibration.py) calibrates,
 for one atmosphere, the three settings of Gałaj 2021 that depend on it. This page is written by
 
     {command}

@@ -4,9 +4,9 @@ Writes docs/lut_chapman_fog.md. Usage:
 
     .venv/bin/python scripts/lut_chapman_fog_accuracy.py [--out docs/lut_chapman_fog.md] [--random 400]
 
-References are skyfit.reference.column_quad (scipy quad, float64, epsrel 1e-10,
+References are skyfit.tools.reference.column_quad (scipy quad, float64, epsrel 1e-10,
 break points at the tangent point). Relative error is |c - ref| / max(ref, 1 mm)
-(skyfit.reference.relative_column_error).
+(skyfit.tools.reference.relative_column_error).
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from scipy import special
 
-from skyfit.reference import accuracy_cases, column_quad, relative_column_error, segment_to_boundary
+from skyfit.tools.reference import accuracy_cases, column_quad, relative_column_error, segment_to_boundary
 from skyfit.transmittance import make_integrator
 from skyfit.transmittance.fog import curvature_fraction
 
@@ -195,12 +195,12 @@ def main(argv=None):
         "# bruneton_lut, chapman and height_fog: accuracy",
         "",
         "Each method's column `int_0^L exp(-(r(s) - R)/H) ds` against `scipy.integrate.quad` (float64, epsrel 1e-10,",
-        "`skyfit.reference.column_quad`). Grid: `skyfit.reference.accuracy_cases` (observer at the ground, ground + 1 m,",
+        "`skyfit.tools.reference.column_quad`). Grid: `skyfit.tools.reference.accuracy_cases` (observer at the ground, ground + 1 m,",
         "ground + 1 km, top - 1 m, top; mu = 1, 0.5, 0.1, +-1e-6, 0, -0.1, -1, the geometric horizon mu_h and mu_h +- 1e-6;",
         "segments to the ground or the top and half way) plus the same rays cut at 2% of the half-way length (*short*),",
         f"and {len(rnd)} random segments (altitude ~ 60 km x U^2, mu ~ U(-1, 1), length ~ U x length to the boundary; seed 0).",
         f"Earth radii {BOTTOM:.0f} / {TOP:.0f} m; H = 8000 m (Rayleigh) and 1200 m (Mie). Relative error is",
-        "|c - ref| / max(ref, 1 mm) (`skyfit.reference.relative_column_error`: below 1 mm of column the transmittance",
+        "|c - ref| / max(ref, 1 mm) (`skyfit.tools.reference.relative_column_error`: below 1 mm of column the transmittance",
         "changes by < 1e-5). Both difference methods subtract two columns to the top, so their error scales with the",
         "larger one, C_scale (from the start along the ray, or for rays that hit the ground from the ground point",
         "looking back); *err / C_scale* is |c - ref| / max(C_scale, 1 m). *float32* is |c32 - c64| / max(C_scale, 1 m)",

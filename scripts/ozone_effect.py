@@ -26,8 +26,7 @@ from scipy import integrate
 from tqdm import tqdm
 
 from skyfit.atmosphere import load_atmosphere
-from skyfit.camera import FisheyeCamera
-from skyfit.render import render_fisheye
+from skyfit.camera import FisheyeCamera, render_fisheye
 from skyfit.render.colour import delta_e_1976, spectral_to_xyz
 from skyfit.scattering import single_scattering
 from skyfit.scattering.hillaire import hillaire_lut, hillaire_sky_radiance

@@ -2,13 +2,13 @@
 
 Runs every optical-depth integrator (as single scattering), Hillaire 2020's
 multiple-scattering LUT and Bruneton's tables over the extreme grid of
-:mod:`skyfit.stability`, in float64 and float32, and reports
+:mod:`skyfit.tools.stability`, in float64 and float32, and reports
 
 * NaN/Inf counts in the radiance and in its gradients w.r.t. beta, H, g and the
   ground albedo, negative radiances, refusals (with their messages) and
   unexpected exceptions, per method and per value of each grid axis;
 * the max relative error of each integrator's optical-depth columns against the
-  float64 scipy reference (skyfit.reference.column_quad), per scale height,
+  float64 scipy reference (skyfit.tools.reference.column_quad), per scale height,
   observer altitude and kind of segment (view ray / sun ray).
 
 Usage::
@@ -33,7 +33,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from skyfit import stability as S  # noqa: E402
+from skyfit.tools import stability as S  # noqa: E402
 from skyfit.transmittance import INTEGRATORS  # noqa: E402
 
 MULTIPLE = ("hillaire", "bruneton", "bruneton_clamp")
@@ -239,7 +239,7 @@ def _report(args, grid, settings, methods, radiance, columns, cpu, cpu_total) ->
         "",
         f"Made by `.venv/bin/python {cmd[7:]}` (CPU time {cpu_total:.0f} s, one thread, "
         f"on {platform.machine()} under load from other jobs; torch {torch.__version__}). "
-        "The grid and the counting are in `skyfit/stability.py`; `tests/test_extremes.py` runs the ends of every axis "
+        "The grid and the counting are in `skyfit/tools/stability.py`; `tests/test_extremes.py` runs the ends of every axis "
         "(the `--quick` grid) in under a minute and asserts the same properties.",
         "",
         "## The grid",
@@ -307,7 +307,7 @@ def _report(args, grid, settings, methods, radiance, columns, cpu, cpu_total) ->
             "## Optical-depth columns against scipy",
             "",
             "Max relative error `|c - ref| / max(ref, 1 mm)` of each integrator's column against "
-            "`skyfit.reference.column_quad` (float64 scipy quad, break points at the tangent point), on the grid's view "
+            "`skyfit.tools.reference.column_quad` (float64 scipy quad, break points at the tangent point), on the grid's view "
             "segments (the part of each view ray inside the atmosphere) and sun rays (observer to the top along "
             "max(mu_s, mu_h), as single scattering uses them), each scale height alone. The reference is evaluated at the "
             "inputs the method received (rounded to its dtype). `R<n>`: n segments refused; non-finite columns or "

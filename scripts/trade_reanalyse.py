@@ -1,7 +1,7 @@
 """Rewrite a trade-study folder's derived outputs from its own measurements (trade.json).
 
 The speed ratios, the automatic-settings table, trade.md, trade.csv, trade_pareto.png and
-frontier.json are recomputed with the current skyfit.bench_trade code from the measured rows;
+frontier.json are recomputed with the current skyfit.tools.trade code from the measured rows;
 nothing is rendered or timed again, and the recorded command and machine stay those of the run.
 
     .venv/bin/python scripts/trade_reanalyse.py docs/bench_trade
@@ -12,7 +12,7 @@ import json
 import sys
 from pathlib import Path
 
-from skyfit.bench_trade import Scene, TradePlan, _write_trade_outputs, auto_table, speed_ratio_de1
+from skyfit.tools.trade import Scene, TradePlan, _write_trade_outputs, auto_table, speed_ratio_de1
 
 
 def main(folder: str) -> None:
