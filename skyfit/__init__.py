@@ -15,6 +15,7 @@ from .api import (  # noqa: E402  (after __version__, which modules below read)
     ACCURATE,
     FitResult,
     Sky,
+    envmap,
     export_luts,
     fit,
     load_atmosphere,
@@ -25,6 +26,7 @@ from .api import (  # noqa: E402  (after __version__, which modules below read)
     sun_vector,
 )
 from .atmosphere import Atmosphere  # noqa: E402
+from .batch import batch  # noqa: E402
 from .camera import FisheyeCamera, sun_position  # noqa: E402
 from .fit import Observation  # noqa: E402
 
@@ -36,6 +38,8 @@ __all__ = [
     "Observation",
     "Sky",
     "__version__",
+    "batch",
+    "envmap",
     "export_luts",
     "fit",
     "load_atmosphere",
@@ -68,3 +72,4 @@ def _callable_package(name: str, function):
 
 render = _callable_package("render", render)  # noqa: F811  (the subpackage, callable as the API function)
 fit = _callable_package("fit", fit)  # noqa: F811
+batch = _callable_package("batch", batch)  # noqa: F811  (the module skyfit.batch, callable as skyfit.batch(...))

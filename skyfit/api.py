@@ -195,7 +195,7 @@ def _disk_renderer(model: SkyModel, atm: Atmosphere, altitude: float):
 def envmap(source: "FitResult | Atmosphere", sun=None, *, time: str | None = None, location=None, size: int = 512,
            layout: str = "latlong", sun_disk: bool = False, orders: int = 4, multiple: str = "bruneton",
            table_sizes=None, accuracy: str | None = None, altitude: float = 0.0, model: SkyModel | None = None,
-           spectral: bool = True):
+           spectral: bool = True, tables=None):
     """An HDR environment map of a (fitted) sky: :class:`skyfit.export.envmap.EnvMap` (docs/envmap.md).
 
     Args:
@@ -206,6 +206,7 @@ def envmap(source: "FitResult | Atmosphere", sun=None, *, time: str | None = Non
         sun_disk: add the solar disc (energy-conserving at any resolution).
         orders, multiple, table_sizes, accuracy, altitude, model: the renderer, as :func:`render`
             (default: 4 orders of Bruneton's tables at 2017's sizes; ``table_sizes`` R,MU,MUS,NU).
+        tables: ``model.tables(atmosphere)`` computed once, to reuse across maps of one atmosphere.
     """
     from .export.envmap import render_envmap
 
@@ -217,7 +218,7 @@ def envmap(source: "FitResult | Atmosphere", sun=None, *, time: str | None = Non
         if table_sizes is not None and model.orders > 1 and model.multiple == "bruneton":
             sizes = table_sizes if isinstance(table_sizes, TableSizes) else TableSizes.parse(table_sizes)
             model = dataclasses.replace(model, table_sizes=dataclasses.astuple(sizes))
-    fn = model.renderer(atm, altitude)
+    fn = model.renderer(atm, altitude, tables=tables)
     meta = {"renderer": {**model.integrator.settings(), **model.settings()}, "observer_altitude_m": altitude,
             "atmosphere": atm.summary()}
     return render_envmap(atm, s, lambda d: fn(d, s), size=size, layout=layout, sun_disk=sun_disk, spectral=spectral,
@@ -383,7 +384,7 @@ def sample(fit_result: FitResult, *, walkers: int = 32, steps: int = 2000, seed:
 
 def export_luts(source: FitResult | Atmosphere, out_dir: str | Path | None = None, *, orders: int = 4,
                 table_sizes: TableSizes | Sequence[int] | None = None, wavelengths=None, format: str = "exr", rgb: bool = False,
-                device: str = "cpu") -> PrecomputedAtmosphere:
+                device: str = "cpu", layout: str = "skyfit", precision: str = "f32") -> PrecomputedAtmosphere:
     """Bruneton's precomputed tables of a fitted atmosphere (or any Atmosphere), written as LUTs when asked.
 
     Args:
@@ -393,13 +394,25 @@ def export_luts(source: FitResult | Atmosphere, out_dir: str | Path | None = Non
         table_sizes: :class:`~skyfit.scattering.bruneton_tables.TableSizes`, or the scattering table's
             (R, MU, MU_S, NU) as ``skyfit export-lut --table-sizes`` takes them (default Bruneton 2017's).
         format, rgb: ``exr`` or ``npz``; linear sRGB channels instead of one per wavelength.
+        layout, precision: ``skyfit`` (the files above) or ``bruneton2017`` (the RGB textures, .dat files and
+            GLSL of an unmodified Bruneton 2017 shader, docs/luts.md; scattering textures in ``f16`` or ``f32``).
     """
+    from .export import bruneton2017 as b17
+
     atm = source.atmosphere(wavelengths, device=device) if isinstance(source, FitResult) else source
     if table_sizes is not None and not isinstance(table_sizes, TableSizes):
         table_sizes = TableSizes.parse(table_sizes)
+    if layout not in ("skyfit", "bruneton2017"):
+        raise ValueError(f"unknown LUT layout {layout!r}; valid: skyfit, bruneton2017")
+    kw = {} if layout == "skyfit" else {"mu_s_min": b17.skyfit_mu_s_min(b17.UPSTREAM_MU_S_MIN, atm.bottom_radius, atm.top_radius)}
+    if layout == "bruneton2017":
+        b17.check_precision(precision)  # before the precomputation
     with torch.no_grad():
-        tables = precompute(atm, orders=orders, sizes=table_sizes or TableSizes())
-    if out_dir is not None:
+        tables = precompute(atm, orders=orders, sizes=table_sizes or TableSizes(), **kw)
+    if out_dir is not None and layout == "bruneton2017":
+        atm_rgb = source.atmosphere(list(b17.LAMBDAS_RGB_NM), device=device) if isinstance(source, FitResult) else None
+        b17.export_bruneton2017(tables, out_dir, precision=precision, atm_rgb=atm_rgb)
+    elif out_dir is not None:
         _write_luts(tables, atm, out_dir, format=format, rgb=rgb)
     return tables
 

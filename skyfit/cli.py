@@ -11,26 +11,31 @@ import io
 import json
 import math
 import sys
-import tempfile
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from . import __version__
-from .api import resolve_device
+from .api import envmap, resolve_device
+from .batch import batch as run_batch
+from .batch import summary_lines
 from .atmosphere import ConfigError, load_atmosphere, read_config
 from .atmosphere.wavelengths import DEFAULT_WAVELENGTHS, parse_wavelengths
 from .camera import PROJECTIONS, FisheyeCamera, parse_location, parse_time, render_fisheye, sun_position
-from .export import FORMATS, export_luts
+from .export import FORMATS, bruneton2017, export_luts
+from .export.unreal import export_unreal
 from .fit.problem import FitSettings
 from .fit.report import dumps
 from .fit.results import atmosphere_from_result, read_result
 from .fit.run import run_evaluate, run_fit
 from .fit.select import format_table
 from .io import ExrError, write_exr
-from .io.atomic import write_text_atomic
+from .io.atomic import check_writable, write_text_atomic
+from .fit.data import DataWarning
+from .resources import Estimate, check, single_scattering_estimate, tables_estimate
 from .quadrature import RULES
 from .render.auto import choose, describe, parse_accuracy
 from .scattering.bruneton_tables import TableSizes
@@ -198,8 +203,12 @@ def cmd_render(args) -> int:
     _check_render_numbers(args)
     lam = parse_wavelengths(args.wavelengths)
     auto = _apply_accuracy(args, sun_zenith) if args.accuracy else None
-    integrator = parse_integrator(args.integrator)
+    try:
+        integrator = parse_integrator(args.integrator)
+    except ValueError as e:
+        raise UserError(f"--integrator {args.integrator}: {e}") from None
     device = _check_device(args.device)
+    check_resources(args, len(lam), integrator)
     atm = load_atmosphere(args.config, lam, dtype=_dtype(args.dtype), device=device, sun_distance_au=sun_info.get("distance_au"))
     t0 = time.perf_counter()
     with torch.no_grad():
@@ -287,7 +296,7 @@ def cmd_fit(args) -> int:
     try:
         res = run_fit(args.data, cfg, args.out, overrides=overrides, config_source=source, kider_site=_kider_site(args),
                       plots=not args.no_plots, progress=_progress(args), laplace=args.laplace, select=args.select,
-                      device=_check_device(args.device))
+                      device=_check_device(args.device), force=args.force)
     except ConfigError as e:
         raise ConfigError(f"config {source}: {e}") from None
     m, c = res["metrics"], res["convergence"]
@@ -317,7 +326,7 @@ def cmd_fit(args) -> int:
 def cmd_evaluate(args) -> int:
     _threads(args)
     res = run_evaluate(args.result, args.data, refit_nuisance=args.refit_nuisance, kider_site=_kider_site(args),
-                       progress=_progress(args), device=_check_device(args.device))
+                       progress=_progress(args), device=_check_device(args.device), force=args.force)
     if args.json:
         print(dumps(res, indent=None))
     else:
@@ -333,8 +342,7 @@ def cmd_sample(args) -> int:
         raise UserError(f"--walkers must be >= 2, got {args.walkers}")
     if args.steps is not None and args.steps < 1:
         raise UserError(f"--steps must be >= 1, got {args.steps}")
-    if not Path(args.init).is_file():
-        raise UserError(f"--init: result file not found: {args.init}")
+    read_result(args.init)  # before the data: a missing, malformed or out-of-range RESULT.json is one line
     cfg, source = read_config(args.config)
     overrides = {"walkers": args.walkers, "steps": args.steps, "seed": args.seed, "integrator": args.integrator,
                  "view_samples": args.view_samples, "checkpoint_seconds": args.checkpoint_seconds, "accuracy": args.accuracy,
@@ -342,7 +350,7 @@ def cmd_sample(args) -> int:
     try:
         res = run_sample(args.data, cfg, args.init, args.out, overrides=overrides, kider_site=_kider_site(args),
                          resume=args.resume, progress=_progress(args), plots=not args.no_plots,
-                         device=_check_device(args.device))
+                         device=_check_device(args.device), force=args.force, config_source=source)
     except ConfigError as e:
         raise ConfigError(f"config {source}: {e}") from None
     d = res["diagnostics"]
@@ -509,33 +517,365 @@ def cmd_export_lut(args) -> int:
     device = _check_device(args.device)
     if args.orders < 1:
         raise UserError(f"--orders must be >= 1 (1 = single scattering), got {args.orders}")
+    if args.layout == "bruneton2017" and args.format != "exr":
+        raise UserError(f"--layout bruneton2017 writes EXR and raw .dat textures; --format {args.format} is for --layout skyfit")
+    if args.precision is not None and args.layout != "bruneton2017":
+        raise UserError("--precision applies to --layout bruneton2017 (the other layouts are float32)")
+    if args.layout == "unreal" and args.format != "exr":
+        raise UserError(f"--layout unreal writes EXR LUTs and unreal.json; --format {args.format} is for --layout skyfit")
+    if args.sun_zenith is not None and args.layout != "unreal":
+        raise UserError("--sun-zenith applies to --layout unreal (the sky-view LUTs)")
+    sky_view_suns = _floats(args.sun_zenith, len(args.sun_zenith.split(",")), "--sun-zenith") if args.sun_zenith else [45.0]
+    if not all(0.0 <= z <= 180.0 for z in sky_view_suns):
+        raise UserError(f"--sun-zenith angles must be in [0, 180] degrees, got {args.sun_zenith}")
     res = read_result(args.result)
     if args.wavelengths is not None:
         lam = parse_wavelengths(args.wavelengths)
     else:
         lam = np.asarray(res["model"].get("wavelengths_nm") or parse_wavelengths(DEFAULT_WAVELENGTHS), float)
     sizes = _table_sizes(args.table_sizes) or TableSizes()
-    out = Path(args.out)
-    # Refuse an unwritable --out before the (long) precomputation.
-    if out.exists() and not out.is_dir():
-        raise UserError(f"--out {out} exists and is not a directory")
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tempfile.TemporaryDirectory(dir=out.parent).cleanup()
-    except OSError as e:
-        raise UserError(f"--out {out}: cannot write there ({e.strerror or e})") from None
+    out = check_writable(args.out, directory=True)  # before the (long) precomputation; creates nothing
     try:
         atm = atmosphere_from_result(res, lam, device=device)
     except (KeyError, TypeError) as e:
         raise UserError(f"{args.result}: malformed result ({e})") from None
     t0 = time.perf_counter()
-    with torch.no_grad():
-        tables = precompute(atm, orders=args.orders, sizes=sizes)
-    export_luts(tables, atm, out, format=args.format, rgb=args.rgb)
+    if args.layout == "bruneton2017":
+        b17 = bruneton2017
+        with torch.no_grad():
+            tables = precompute(atm, orders=args.orders, sizes=sizes,
+                                mu_s_min=b17.skyfit_mu_s_min(b17.UPSTREAM_MU_S_MIN, atm.bottom_radius, atm.top_radius))
+        b17.export_bruneton2017(tables, out, precision=args.precision or "f32",
+                                atm_rgb=atmosphere_from_result(res, list(b17.LAMBDAS_RGB_NM), device=device))
+    elif args.layout == "unreal":
+        export_unreal(atm, atmosphere_from_result(res, list(bruneton2017.LAMBDAS_RGB_NM), device=device), out,
+                      sun_zeniths=sky_view_suns)
+    else:
+        with torch.no_grad():
+            tables = precompute(atm, orders=args.orders, sizes=sizes)
+        export_luts(tables, atm, out, format=args.format, rgb=args.rgb)
     info = {"out": str(out), "format": args.format, "orders": args.orders, "seconds": round(time.perf_counter() - t0, 3),
-            "channels": "rgb" if args.rgb else "spectral", "wavelengths_nm": [float(v) for v in lam]}
+            "channels": "rgb" if args.rgb or args.layout != "skyfit" else "spectral", "layout": args.layout,
+            "wavelengths_nm": [float(v) for v in lam]}
+    if args.layout == "bruneton2017":
+        info["precision"] = args.precision or "f32"
     print(json.dumps(info) if args.json else f"wrote {out} ({args.format}, {args.orders} orders) in {info['seconds']:.1f} s")
     return 0
+
+
+# -- many skies ------------------------------------------------------------------
+def cmd_batch(args) -> int:
+    """``skyfit batch``: a thin layer over :func:`skyfit.batch.batch` (CONTRACT.md, "Many skies"; docs/batch.md)."""
+    if args.scheduler and (args.workers is not None or args.threads_per_worker is not None):
+        raise UserError("--workers and --threads-per-worker size the local cluster; a --scheduler's cluster has its own workers")
+    overrides = {
+        "per_observation": args.per_observation, "integrator": args.integrator, "orders": args.orders,
+        "multiple": args.multiple, "view_samples": args.view_samples, "rule": args.rule, "loss": args.loss, "starts": args.starts,
+        "max_iter": args.max_iter, "adam_steps": args.adam_steps, "seed": args.seed, "wavelengths": args.wavelengths,
+        "min_elevation_deg": args.min_elevation, "sun_disc_deg": args.sun_mask, "max_samples": args.max_samples,
+        "sigma_relative": args.sigma_relative, "accuracy": args.accuracy,
+    }
+    # a local cluster runs on this machine: its --device is checked here; a scheduler's workers resolve it themselves
+    device = args.device if args.scheduler else _check_device(args.device)
+    say = (lambda line: print(line, file=sys.stderr)) if args.json else print
+    df = run_batch(args.data, args.config, out=args.out, scheduler=args.scheduler, workers=args.workers,
+                   threads_per_worker=args.threads_per_worker or 1, resume=args.resume, laplace=args.laplace,
+                   progress=_progress(args), retries=args.retries, free=args.free, kider_site=_kider_site(args),
+                   plot=not args.no_plots, warm_start=args.warm_start, device=device,
+                   force=getattr(args, "force", False), log=say,
+                   **{k: v for k, v in overrides.items() if v is not None})
+    a = df.attrs
+    n_ok = int((df["status"] == "ok").sum())
+    if args.json:
+        print(dumps({"out": str(args.out), "items": len(df), "ok": n_ok, "failed": len(df) - n_ok,
+                     "resumed": a["resumed"], "seconds": round(a["seconds"], 3), "startup_s": round(a["startup_s"], 3),
+                     "run_s": round(a["run_s"], 3), "dashboard": a["dashboard"], "workers": a["workers"],
+                     "files": a["files"]}, indent=None))
+    else:
+        print("\n".join(summary_lines(df, a["seconds"])))
+        print(f"wrote {args.out} ({', '.join(Path(f).name for f in a['files'])} and one RESULT.json per item)")
+    return 0
+
+
+def _add_batch_parser(sub) -> None:
+    D = FitSettings()
+    b = sub.add_parser("batch", help="one fit per item (captures, photos, folders, globs) on Dask: RESULT.json per item, "
+                                     "results.parquet/.csv, timeseries.png (docs/batch.md)")
+    b.add_argument("data", nargs="+", help="Kider capture folders, .exr files, folders of either, or globs (quoted)")
+    b.add_argument("--config", required=True, help="atmosphere config YAML with an optional fit: section (or a shipped name)")
+    b.add_argument("--out", required=True, help="output folder: <item>/RESULT.json, results.parquet, results.csv, timeseries.png")
+    b.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler, tcp://HOST:PORT (default: a local cluster)")
+    b.add_argument("--workers", type=int, help="local cluster: worker processes (default: one per CPU)")
+    b.add_argument("--threads-per-worker", type=int, help="local cluster: fits at once per worker, one torch thread each (default 1)")
+    b.add_argument("--retries", type=int, default=2, help="reschedules of an item whose worker died before it is recorded as failed (default 2)")
+    b.add_argument("--resume", action="store_true", help="skip the items with a complete RESULT.json in --out")
+    b.add_argument("--laplace", action="store_true", help="Laplace sigma per free parameter (sigma_<name> columns, bands in timeseries.png)")
+    b.add_argument("--warm-start", choices=("previous",),
+                   help="previous: start each fit from the item before it (in order; contiguous chains, one per worker thread)")
+    b.add_argument("--free", help="comma list of fitted parameters (docs/fitting.md)")
+    b.add_argument("--per-observation", help="comma list of nuisance parameters with one value per observation")
+    b.add_argument("--integrator", help=f"NAME[:key=value,...] (default {D.integrator})")
+    b.add_argument("--orders", type=int, help="scattering orders (1 = single scattering, the default)")
+    b.add_argument("--multiple", choices=("hillaire", "bruneton"), help="with --orders >= 2: the multiple-scattering model")
+    b.add_argument("--view-samples", type=int, help=f"samples of the view-ray integral (default {D.view_samples})")
+    b.add_argument("--rule", help=f"outer quadrature rule (default {D.rule})")
+    b.add_argument("--accuracy", help="auto, de=X or rel=X: the cheapest measured renderer setting meeting it")
+    b.add_argument("--loss", help=f"squared, log, relative, huber, cauchy [:residual=...,delta=...] (default {D.loss})")
+    b.add_argument("--starts", type=int, help=f"multi-start points (default {D.starts})")
+    b.add_argument("--max-iter", type=int, help=f"L-BFGS iterations per start (default {D.max_iter})")
+    b.add_argument("--adam-steps", type=int, help=f"Adam warm-start steps per start (default {D.adam_steps})")
+    b.add_argument("--seed", type=int, help=f"seed of the multi-start spread (default {D.seed})")
+    b.add_argument("--wavelengths", help="model grid for RGB data, START:STOP:STEP or a list [nm]")
+    b.add_argument("--min-elevation", type=float, help=f"horizon mask: lowest elevation used [deg] (default {D.min_elevation_deg:g})")
+    b.add_argument("--sun-mask", type=float, help=f"images: radius of the disc around the sun left out [deg] (default {D.sun_disc_deg:g})")
+    b.add_argument("--max-samples", type=int, help="images: use every k-th pixel so that at most this many remain")
+    b.add_argument("--sigma-relative", type=float, help=f"images: relative noise when the header has none (default {D.sigma_relative:g})")
+    b.add_argument("--location", help="Kider data: LAT,LON[,ELEV] (default: the Kider site)")
+    b.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
+    b.add_argument("--no-plots", action="store_true", help="do not write timeseries.png")
+    b.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (resolved on each worker); default cpu")
+    b.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar over the items (default: on a terminal)")
+    b.add_argument("--json", action="store_true")
+    b.set_defaults(func=cmd_batch)
+
+
+def _envmap_atmosphere(source: str, wavelengths: str | None, sun_distance_au: float | None):
+    """``skyfit envmap``'s SOURCE: a RESULT.json (the fitted atmosphere) or a config (name or YAML)."""
+    if Path(source).suffix.lower() == ".json":
+        res = read_result(source)
+        lam = parse_wavelengths(wavelengths) if wavelengths else None
+        try:
+            return atmosphere_from_result(res, lam)
+        except (KeyError, TypeError) as e:
+            raise UserError(f"{source}: malformed result ({e})") from None
+    return load_atmosphere(source, parse_wavelengths(wavelengths or DEFAULT_WAVELENGTHS), sun_distance_au=sun_distance_au)
+
+
+def cmd_envmap(args) -> int:
+    """An HDR environment map (lat-long or cubemap) of a fitted sky or a config (docs/envmap.md)."""
+    from .export.envmap import MAX_SIZE, check_output, preview_path, write_envmap
+
+    try:
+        out = check_output(args.out, spectral=args.spectral)
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    if not (2 <= args.size <= MAX_SIZE and args.size % 2 == 0):
+        raise UserError(f"--size must be an even number of pixels in 2..{MAX_SIZE}, got {args.size}")
+    if args.orders < 1:
+        raise UserError(f"--orders must be >= 1 (1 = single scattering), got {args.orders}")
+    if not (0.0 <= args.altitude < math.inf):
+        raise UserError(f"--altitude must be >= 0 m above the ground, got {args.altitude}")
+    check_writable(out)  # before the (long) precomputation; creates nothing
+    if args.preview:
+        check_writable(preview_path(out), what="--preview")
+    sun_zenith, sun_azimuth, sun_info = _sun_from_args(args)
+    sizes = _table_sizes(args.table_sizes)
+    atm = _envmap_atmosphere(args.source, args.wavelengths, sun_info.get("distance_au"))
+    t0 = time.perf_counter()
+    env = envmap(atm, (sun_zenith, sun_azimuth), size=args.size, layout=args.format, sun_disk=args.sun_disk,
+                 orders=args.orders, multiple=args.multiple, table_sizes=sizes, altitude=args.altitude,
+                 spectral=args.spectral)
+    written = write_envmap(env, out, preview=args.preview,
+                           extra_meta={"sun": {**env.sun, **sun_info}, "source": str(args.source), "skyfit_version": __version__})
+    rgb_e = env.irradiance()
+    info = {"out": str(out), "preview": str(preview_path(out)) if args.preview else None, "format": args.format,
+            "size": env.size, "shape": list(env.image().shape[:2]), "sun": {**env.sun, **sun_info},
+            "seconds": round(time.perf_counter() - t0, 3),
+            "horizontal_illuminance_lux": float(rgb_e @ np.linalg.inv(_xyz_to_srgb())[1])}
+    text = (f"wrote {', '.join(str(p) for p in written)} ({args.format}, {info['shape'][0]}x{info['shape'][1]}) in "
+            f"{info['seconds']:.1f} s; horizontal illuminance {info['horizontal_illuminance_lux']:.4g} lx")
+    print(json.dumps(info) if args.json else text)
+    return 0
+
+
+def _xyz_to_srgb() -> np.ndarray:
+    from .render.colour import xyz_to_srgb_matrix
+
+    return xyz_to_srgb_matrix()
+
+
+def _add_envmap_parser(sub) -> None:
+    from .export.envmap import LAYOUTS
+
+    v = sub.add_parser("envmap", help="an HDR environment map (lat-long or cubemap) of a fitted sky (docs/envmap.md)")
+    v.add_argument("source", help="RESULT.json of skyfit fit, or an atmosphere config (shipped name or YAML)")
+    v.add_argument("--out", required=True, help="output .exr (R, G, B, Y [+ L<nm>]) or .hdr (Radiance RGBE) file")
+    v.add_argument("--format", choices=LAYOUTS, default="latlong",
+                   help="latlong: H x 2H, row 0 straight up, column 0's left edge North, East at W/4; "
+                        "cubemap: faces +X,-X,+Y,-Y,+Z,-Z of (x=East, y=Up, z=South) as an N x 6N strip (default latlong)")
+    v.add_argument("--size", type=int, default=512, help="lat-long height H (width 2H) or cube face edge N, even [px] (default 512)")
+    v.add_argument("--sun-zenith", type=float, help="sun zenith angle [deg]")
+    v.add_argument("--sun-azimuth", type=float, default=180.0, help="sun azimuth, clockwise from North [deg] (default 180)")
+    v.add_argument("--time", help="ISO 8601 timestamp with UTC offset, e.g. 2013-05-27T09:30:00-04:00 (sun by NREL SPA)")
+    v.add_argument("--location", help="LAT,LON[,ELEV]: degrees North, degrees East, metres (with --time)")
+    v.add_argument("--sun-disk", action="store_true", help="add the attenuated solar disc (its flux exact at any size)")
+    v.add_argument("--preview", action="store_true", help="also write a tone-mapped PNG beside --out (same name, .png)")
+    v.add_argument("--spectral", action="store_true", help="also write one channel L<nm> per wavelength (.exr only)")
+    v.add_argument("--orders", type=int, default=4, help="scattering orders (1 = single scattering; default 4)")
+    v.add_argument("--multiple", choices=("bruneton", "hillaire"), default="bruneton",
+                   help="with --orders >= 2: Bruneton's precomputed tables or Hillaire 2020's LUT (default bruneton)")
+    v.add_argument("--table-sizes", help="R,MU,MUS,NU Bruneton scattering-table sizes (default 2017's 32,128,32,8; "
+                                         "minutes of precomputation on a 2-core CPU)")
+    v.add_argument("--wavelengths", help="START:STOP:STEP or comma list [nm] (default: the fit's, or "
+                                         f"{DEFAULT_WAVELENGTHS} for a config)")
+    v.add_argument("--altitude", type=float, default=0.0, help="observer altitude above the ground [m] (default 0)")
+    v.add_argument("--json", action="store_true", help="print a JSON summary")
+    v.set_defaults(func=cmd_envmap)
+
+
+# -- checks before any work (docs/reliability.md) --------------------------------
+_INF = math.inf
+FLAG_RANGES: dict[str, tuple[float, float, str]] = {
+    # dest: (lo, hi, "[]" / "[)" / "()" / "(]"); a flag a command does not have is skipped, as is None
+    "view_samples": (1, _INF, "[)"), "orders": (1, _INF, "[)"), "threads": (1, _INF, "[)"),
+    "walkers": (2, _INF, "[)"), "steps": (1, _INF, "[)"), "seed": (0, _INF, "[)"), "starts": (1, _INF, "[)"),
+    "max_iter": (1, _INF, "[)"), "adam_steps": (0, _INF, "[)"), "max_samples": (1, _INF, "[)"),
+    "checkpoint_seconds": (0, _INF, "()"), "sun_mask": (0, 180, "[)"), "min_elevation": (-90, 90, "[)"),
+    "sigma_relative": (0, _INF, "[)"), "heldout": (0, 1, "[)"), "timezone": (-14, 14, "[]"),
+    "sun_zenith": (0, 180, "[]"), "altitude": (0, _INF, "[)"), "focal": (0, _INF, "()"), "radius": (0, _INF, "()"),
+    "max_zenith": (0, 180, "(]"), "tolerance": (0, 1, "()"), "transmittance_tolerance": (0, 1, "()"),
+    "workers": (1, _INF, "[)"), "threads_per_worker": (1, _INF, "[)"), "retries": (0, _INF, "[)"),
+}
+"""Ranges of the numeric flags, checked for every command before any work; every float flag must
+also be finite (``nan`` and ``inf`` parse as floats)."""
+FLAG_WHAT = {"heldout": "the held-out fraction", "timezone": "a UTC offset in hours"}
+"""What a flag is, where its name alone does not say, for the range messages."""
+OUTPUTS: dict[str, tuple[tuple[str, bool], ...]] = {
+    # command: (dest, is a folder) of each output path
+    "render": (("out", False),), "fit": (("out", False),), "calibrate-integrator": (("out", False),),
+    "envmap": (("out", False),), "sample": (("out", True),), "bench": (("out", True), ("frontier_out", False)),
+    "demo": (("out", True),), "export-lut": (("out", True),), "batch": (("out", True),),
+}
+"""Output paths, checked for writability (and file vs folder) before any work."""
+FORCE_COMMANDS = ("render", "fit", "sample", "evaluate", "export-lut", "envmap", "batch")
+"""Commands with ``--force``: run although the memory or time estimate says no (skyfit.resources)."""
+
+
+def _flag(dest: str) -> str:
+    return "--" + dest.replace("_", "-")
+
+
+def check_flags(parser: argparse.ArgumentParser, args) -> None:
+    """UserError naming the flag for a numeric flag out of :data:`FLAG_RANGES` or a float flag not finite."""
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[args.command]
+    for action in sub._actions:
+        v = getattr(args, action.dest, None)
+        if action.type not in (int, float) or v is None or isinstance(v, bool):
+            continue
+        flag = action.option_strings[0] if action.option_strings else action.dest
+        if action.type is float and not math.isfinite(v):
+            raise UserError(f"{flag} must be a finite number, got {v}")
+        if action.dest in FLAG_RANGES:
+            lo, hi, b = FLAG_RANGES[action.dest]
+            if not ((lo <= v if b[0] == "[" else lo < v) and (v <= hi if b[1] == "]" else v < hi)):
+                rng = (f">= {lo:g}" if b[0] == "[" else f"> {lo:g}") if hi == _INF else f"in {b[0]}{lo:g}, {hi:g}{b[1]}"
+                what = f" ({FLAG_WHAT[action.dest]})" if action.dest in FLAG_WHAT else ""
+                raise UserError(f"{flag}{what} must be {rng}, got {v:g}")
+
+
+SPECS = {"wavelengths": parse_wavelengths, "table_sizes": TableSizes.parse, "location": parse_location, "time": parse_time}
+"""Flags holding a spec string, parsed before any work even where the command would not use it (e.g.
+--wavelengths for spectral data, --table-sizes with --orders 1): a malformed value is always an error."""
+
+
+def check_specs(args) -> None:
+    """UserError naming the flag and its value for a spec flag of :data:`SPECS` that does not parse."""
+    for dest, parse in SPECS.items():
+        v = getattr(args, dest, None)
+        if v is None or not isinstance(v, str):
+            continue
+        try:
+            parse(v)
+        except ValueError as e:
+            msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+            raise UserError(msg if _flag(dest) in msg else f"{_flag(dest)} {v}: {msg}") from None
+
+
+def check_outputs(args) -> None:
+    """OutputError (one line) unless every output path of the command can be written: a file target is not a
+    folder, a folder target not a file, and the place is writable; nothing is created (skyfit.io.atomic)."""
+    for dest, folder in OUTPUTS.get(args.command, ()):
+        path = getattr(args, dest, None)
+        if path:
+            check_writable(path, directory=folder, what=_flag(dest))
+
+
+def _render_estimate(args, n_wavelengths: int, integrator=None, device: str = "cpu") -> Estimate:
+    """Memory and time of ``skyfit render`` (or ``envmap``) with these flags (skyfit.resources)."""
+    nbytes = 8 if getattr(args, "dtype", "float32") == "float64" else 4
+    if args.command == "envmap":
+        rays = float(args.size) * (2 * args.size if args.format == "latlong" else 6 * args.size)
+    else:
+        rays = float(args.size) ** 2 * math.pi / 4  # the fisheye's circle
+    orders = int(getattr(args, "orders", 1))
+    what = f"{args.command} {args.size}x{args.size}" if args.command == "render" else f"{args.command} of size {args.size}"
+    if orders > 1 and getattr(args, "multiple", "bruneton") == "bruneton":
+        sizes = _table_sizes(getattr(args, "table_sizes", None)) or TableSizes()
+        est = tables_estimate(sizes.scattering_shape, n_wavelengths, orders, dtype_bytes=nbytes, device=device, what=what)
+        look = single_scattering_estimate(rays, n_wavelengths, 1, None, dtype_bytes=nbytes, device=device)
+        return Estimate(what, max(est.memory_bytes, look.memory_bytes), est.seconds + look.seconds, est.detail)
+    settings = integrator.settings() if integrator is not None else None
+    return single_scattering_estimate(rays, n_wavelengths, int(getattr(args, "view_samples", 32) or 32), settings,
+                                      dtype_bytes=nbytes, device=device, what=what)
+
+
+def check_resources(args, n_wavelengths: int, integrator=None) -> None:
+    """ResourceError (one line, with the estimate) for a render, envmap or export-lut too large for this
+    machine or too long to run unasked; ``--force`` skips it."""
+    device = _check_device(args.device) if getattr(args, "device", None) else "cpu"  # auto -> the device it means
+    if args.command == "export-lut":
+        sizes = _table_sizes(args.table_sizes) or TableSizes()
+        est = tables_estimate(sizes.scattering_shape, n_wavelengths, args.orders, device=device, what="export-lut")
+        hint = "reduce --table-sizes, --orders or --wavelengths, or add --force"
+    else:
+        est = _render_estimate(args, n_wavelengths, integrator, device)
+        hint = "reduce --size, --view-samples, the --integrator's samples, --wavelengths, --orders or --table-sizes, or add --force"
+    check(est, force=bool(getattr(args, "force", False)), hint=hint, device=device)
+
+
+def _export_lut_wavelengths(args) -> int:
+    """How many wavelengths ``export-lut`` will tabulate (its --wavelengths, else the fit's)."""
+    if args.wavelengths is not None:
+        return len(parse_wavelengths(args.wavelengths))
+    res = read_result(args.result)
+    lam = (res.get("model") or {}).get("wavelengths_nm")
+    return len(lam) if isinstance(lam, list) and lam else len(parse_wavelengths(DEFAULT_WAVELENGTHS))
+
+
+def _before_work(parser: argparse.ArgumentParser, args) -> None:
+    """Every check that needs no data: flag ranges, output paths, and the resource estimates that the
+    flags alone determine (export-lut, envmap; render checks after ``--accuracy`` settles its flags)."""
+    check_flags(parser, args)
+    check_specs(args)
+    check_outputs(args)
+    if args.command == "export-lut":
+        check_resources(args, _export_lut_wavelengths(args))
+    elif args.command == "envmap":
+        if args.wavelengths is not None or Path(args.source).suffix.lower() != ".json":
+            n = len(parse_wavelengths(args.wavelengths or DEFAULT_WAVELENGTHS))
+        else:
+            n = len((read_result(args.source).get("model") or {}).get("wavelengths_nm") or [0] * 16)
+        check_resources(args, n)
+
+
+class _OneLineWarnings:
+    """Library warnings as one stderr line each, ``skyfit: warning: ...`` (a DataWarning says what data
+    was left out and why; docs/reliability.md), instead of Python's two-line form with the source line."""
+
+    def __enter__(self):
+        self._cm = warnings.catch_warnings()
+        self._cm.__enter__()
+        warnings.showwarning = self._show
+        return self
+
+    def __exit__(self, *exc):
+        return self._cm.__exit__(*exc)
+
+    @staticmethod
+    def _show(message, category, filename, lineno, file=None, line=None):
+        text = " ".join(str(message).split())
+        kind = "" if issubclass(category, (DataWarning, UserWarning)) else f"{category.__name__}: "
+        print(f"skyfit: warning: {kind}{text}", file=sys.stderr)
 
 
 # -- entry point ---------------------------------------------------------------
@@ -548,6 +888,8 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="skyfit", description="Fit a physically based atmosphere to measured skies.")
+    p.add_argument("--version", action="version", version=f"skyfit {__version__}",
+                   help="print skyfit's version and exit")
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("render", help="render a fisheye sky to OpenEXR")
@@ -595,6 +937,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--json", action="store_true")
     d.set_defaults(func=cmd_demo)
     _add_fit_parsers(sub)
+    _add_batch_parser(sub)
 
     b = sub.add_parser("bench", help="speed/accuracy table of the transmittance integrators")
     b.add_argument("--out", default="bench_out")
@@ -632,22 +975,55 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--table-sizes", help="R,MU,MUS,NU scattering-table sizes (default 32,128,32,8)")
     e.add_argument("--wavelengths", help="START:STOP:STEP or comma list [nm] (default: the fit's model wavelengths)")
     e.add_argument("--rgb", action="store_true", help="linear sRGB channels instead of one per wavelength")
+    e.add_argument("--layout", choices=("skyfit", "bruneton2017", "unreal"), default="skyfit",
+                   help="skyfit: spectral tables with multiple scattering apart (default); bruneton2017: the RGB "
+                        "textures, .dat files and GLSL an unmodified Bruneton 2017 shader samples; unreal: Unreal "
+                        "SkyAtmosphere parameters and Hillaire 2020's LUTs (docs/luts.md)")
+    e.add_argument("--precision", choices=("f16", "f32"),
+                   help="--layout bruneton2017: scattering textures in half or single floats (default f32)")
+    e.add_argument("--sun-zenith", help="--layout unreal: sun zenith angle(s) of the sky-view LUTs, comma list [deg] "
+                                        "(default 45)")
     e.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=cmd_export_lut)
+    _add_envmap_parser(sub)
+    for name in FORCE_COMMANDS:
+        sub.choices[name].add_argument("--force", action="store_true", help="run even when the memory or time estimate "
+                                       "says the job does not fit this machine (docs/reliability.md)")
     return p
 
 
+def _os_error(e: OSError) -> str:
+    """An OSError as one line naming the file: ``FILE: reason`` (not a bare errno)."""
+    reason = e.strerror or str(e) or type(e).__name__
+    return f"{e.filename}: {reason}" if e.filename else reason
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """The command line: one line and exit status 2 for any bad input, 130 on Ctrl-C (docs/reliability.md)."""
     try:
-        return int(args.func(args) or 0)
-    except (UserError, ConfigError, ExrError, FileNotFoundError, PermissionError, IsADirectoryError) as e:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        with _OneLineWarnings():
+            _before_work(parser, args)
+            return int(args.func(args) or 0)
+    except (UserError, ConfigError, ExrError) as e:
         print(f"skyfit: error: {e}", file=sys.stderr)
         return EXIT_USAGE
     except ValueError as e:  # parameter validation inside the library
         print(f"skyfit: error: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    except OSError as e:  # an unreadable input, a full disk: one line naming the file
+        print(f"skyfit: error: {_os_error(e)}", file=sys.stderr)
+        return EXIT_USAGE
+    except MemoryError:  # a size the estimates let through (or --force): one line, not a traceback
+        print("skyfit: error: out of memory; reduce the sizes (docs/reliability.md)", file=sys.stderr)
+        return EXIT_USAGE
+    except RuntimeError as e:
+        if "allocate" not in str(e) and "out of memory" not in str(e):
+            raise
+        print(f"skyfit: error: out of memory ({str(e).splitlines()[0][:200]}); reduce the sizes (docs/reliability.md)",
+              file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("skyfit: interrupted", file=sys.stderr)

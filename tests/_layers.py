@@ -10,7 +10,7 @@ import ast
 from pathlib import Path
 
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("base", ("skyfit.geometry", "skyfit.quadrature")),
+    ("base", ("skyfit.geometry", "skyfit.quadrature", "skyfit.resources")),
     ("atmosphere", ("skyfit.atmosphere",)),
     ("transmittance", ("skyfit.transmittance",)),
     ("scattering", ("skyfit.scattering",)),
@@ -19,7 +19,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("io", ("skyfit.io",)),
     ("fit", ("skyfit.fit",)),
     ("export", ("skyfit.export",)),
-    ("api", ("skyfit.api", "skyfit")),
+    ("api", ("skyfit.api", "skyfit.batch", "skyfit")),
     ("tools", ("skyfit.tools",)),
     ("cli", ("skyfit.cli", "skyfit.__main__")),
 )

@@ -258,13 +258,15 @@ def test_cli_sample_then_resume_and_bad_inputs(fitted, tmp_path, capsys):
         (base + ["--out", tmp_path / "w", "--walkers", "2"], "fewer than 2 x 2"),
         (base[:5] + [d / "b.json", "--out", out, "--walkers", "8", "--steps", "90", "--resume"], "another model"),
         (base + ["--out", out, "--walkers", "8"], "exists"),
-        (base + ["--out", tmp_path / "r", "--resume"], "no chain file"),
     ]
     for argv, msg in cases:
         rc, so, se = _cli(argv, capsys)
         assert rc == 2, (argv, se)
         assert msg in se and len(se.strip().splitlines()) == 1, se
-    assert not (tmp_path / "m").exists() and not (tmp_path / "w").exists() and not (tmp_path / "r").exists()
+    assert not (tmp_path / "m").exists() and not (tmp_path / "w").exists()
+    # --resume with nothing to continue starts a new chain and says so (issue 18: it used to be an error)
+    rc, so, se = _cli(base + ["--out", tmp_path / "r", "--resume", "--walkers", "8", "--steps", "5", "--no-plots"], capsys)
+    assert rc == 0 and "starting a new chain" in se, se
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

@@ -109,10 +109,16 @@ def load_yaml(path: str | Path) -> dict:
     import yaml
 
     p = Path(path)
+    if p.is_dir():
+        raise ConfigError(f"config {p} is a folder, not a YAML file")
     if not p.is_file():
         raise ConfigError(f"config file not found: {p}")
     try:
-        data = yaml.safe_load(p.read_text())
+        text = p.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"cannot read config {p}: {getattr(e, 'strerror', None) or 'not UTF-8 text'}") from None
+    try:
+        data = yaml.safe_load(text)
     except yaml.YAMLError as e:
         line = getattr(getattr(e, "problem_mark", None), "line", None)
         where = f" (line {line + 1})" if line is not None else ""
@@ -122,6 +128,31 @@ def load_yaml(path: str | Path) -> dict:
     return data
 
 
+def _quiet_numpy(fn):
+    """Run ``fn`` with numpy's floating-point warnings off: an overflow there becomes a non-finite value
+    that :func:`_check_spectra` reports in one line naming the keys, not a warning before it."""
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with np.errstate(all="ignore"):
+            return fn(*args, **kwargs)
+
+    return wrapper
+
+
+def _check_spectra(spectra: dict, lam: np.ndarray, dtype: torch.dtype) -> None:
+    """ConfigError naming the keys behind a spectrum that is NaN, infinite or beyond ``dtype``'s range."""
+    top = torch.finfo(dtype).max
+    for keys, arr in spectra.items():
+        if arr is None:
+            continue
+        a = np.broadcast_to(np.asarray(arr, float), lam.shape)
+        bad = ~(np.abs(a) <= top)
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise ConfigError(f"{keys} give {a[k]:.3g} at {lam[k]:g} nm, not a finite {str(dtype).replace('torch.', '')} value")
+
+
+@_quiet_numpy
 def atmosphere_from_config(
     cfg: dict,
     wavelengths_nm,
@@ -202,6 +233,10 @@ def atmosphere_from_config(
         peak_density = du * C.DOBSON_UNIT_PER_M2 / ((hi - lo) / 2.0)
         ozone_abs = peak_density * table(oz.get("cross_section", "ozone_cross_section_233K"), lam)
 
+    _check_spectra({"rayleigh.coefficient, exponent and scale (or table)": beta_r,
+                    "mie.angstrom_beta (or extinction_550), angstrom_alpha and scale_height_m": ext_m,
+                    "ground.albedo (or table)": albedo, "sun.distance_au and bandwidth_nm": e_sun,
+                    "ozone.column_du and layer_m": ozone_abs}, lam, dtype)
     try:
         return Atmosphere(
             wavelengths=T(lam),

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+import warnings
 from pathlib import Path
 from typing import Sequence
 
@@ -28,6 +29,11 @@ from .losses import horizon_mask, saturation_mask, sun_disc_mask
 
 class DataError(ValueError):
     """Data that cannot be fitted: unreadable, missing metadata, NaN or negative values."""
+
+
+class DataWarning(UserWarning):
+    """Data used with something left out or suspect (broken Kider samples, clipped pixels): one line
+    naming the file, what and why (docs/reliability.md); the CLI prints it as ``skyfit: warning: ...``."""
 
 
 def check_noise_model(relative: float, absolute: float, where: str) -> None:
@@ -362,7 +368,12 @@ def observation_from_exr(
     sun_vec = zenith_azimuth_to_enu(torch.tensor(sz, dtype=dtype), torch.tensor(sa, dtype=dtype))
     keep &= horizon_mask(safe_view, min_elevation_deg)
     keep &= sun_disc_mask(safe_view, sun_vec, sun_disc_deg)
-    keep &= saturation_mask(values, saturation)
+    unsaturated = saturation_mask(values, saturation)
+    n_saturated = int((keep & ~unsaturated).sum())
+    if n_saturated:  # censored by the level the user gave: said, not silent (docs/reliability.md)
+        warnings.warn(DataWarning(f"{path}: {n_saturated} pixel(s) at or above the saturation level {saturation:g} left out"),
+                      stacklevel=2)
+    keep &= unsaturated
     mask_note = {"field_of_view": int(valid.sum()), "min_elevation_deg": min_elevation_deg,
                  "sun_disc_deg": sun_disc_deg, "saturation": saturation}
     if "mask" in chans:
@@ -372,6 +383,7 @@ def observation_from_exr(
     idx = torch.nonzero(keep).reshape(-1)
     if idx.numel() == 0:
         raise DataError(f"{path}: no usable pixel (field of view, horizon, sun disc and saturation masks leave none)")
+    check_image_values(path, values[idx], names, saturation)
     step = 1
     if max_samples is not None and idx.numel() > max_samples:
         step = math.ceil(idx.numel() / max_samples)
@@ -399,6 +411,49 @@ def observation_from_exr(
             "model_wavelengths_nm": meta.get("wavelengths_nm"),
         },
     )
+
+
+CLIPPED_FRACTION: float = 0.01
+"""A channel whose maximum is shared by more than this fraction of the used pixels (and by 10 or
+more) looks clipped: warned, with the advice to set ``fit.saturation`` (docs/reliability.md)."""
+
+
+def check_image_values(path, values: Tensor, channels: Sequence[str], saturation: float | None = None) -> None:
+    """The data policy for an image's used pixels (docs/reliability.md), beyond NaN/Inf and negatives.
+
+    DataError when every used value is 0 (a black frame: nothing to fit). A DataWarning when a
+    channel is 0 at every used pixel (a dead channel, or a band with no light, as a float32 render
+    deep in the ozone band gives), when every used pixel has the same value in every channel (a
+    flat test pattern: no sky has it, but it is a valid input) and when a channel's maximum is
+    shared by many pixels (clipped highlights) and no saturation level was given.
+
+    Args:
+        path: the file, for messages.
+        values: used pixels, shape (N, C). [data units]
+        channels: channel names, length C.
+        saturation: the saturation level in force (None: none given). [data units]
+    """
+    if values.numel() == 0:
+        return
+    if not bool((values != 0).any()):
+        raise DataError(f"{path}: every used pixel is 0 in every channel (a black image: nothing to fit)")
+    dead = [channels[c] for c in range(values.shape[1]) if not bool((values[:, c] != 0).any())]
+    if dead:  # a dead channel, or no light at all (a float32 render deep in the ozone band): fitted as 0, said
+        warnings.warn(DataWarning(f"{path}: channel(s) {dead} are 0 at every used pixel (no light, or a dead channel)"),
+                      stacklevel=3)
+    if values.shape[0] > 1 and bool((values == values[:1]).all()):
+        warnings.warn(DataWarning(f"{path}: every used pixel has the same value in every channel ({values[0].tolist()}): "
+                                  "a flat test pattern, not a sky?"), stacklevel=3)
+        return
+    if saturation is None and values.shape[0] >= 100:
+        top = values.max(0).values
+        at_top = (values == top).sum(0)
+        clipped = [channels[c] for c in range(values.shape[1])
+                   if int(at_top[c]) >= max(10, CLIPPED_FRACTION * values.shape[0])]
+        if clipped:
+            warnings.warn(DataWarning(f"{path}: channel(s) {clipped} reach their maximum at {int(at_top.max())} of "
+                                      f"{values.shape[0]} used pixels (clipped?); set fit.saturation to leave them out"),
+                          stacklevel=3)
 
 
 # -- Kider captures ----------------------------------------------------------------------
@@ -438,6 +493,10 @@ def observation_from_kider(
     if utc_offset_hours is not None:
         site["utc_offset_hours"] = utc_offset_hours
     cap = kider.load_kider_capture(folder, time_reference=time_reference, min_sun_distance_deg=min_sun_distance_deg, **site)
+    if cap.dropped:  # broken spectra are left out, never silently (docs/reliability.md)
+        reasons = "; ".join(cap.dropped[i] for i in sorted(cap.dropped))
+        warnings.warn(DataWarning(f"{cap.path}: {len(cap.dropped)} of {kider.N_SAMPLES} samples left out as broken: {reasons}"),
+                      stacklevel=2)
     centres, rad, sig = cap.band_average(bin_nm, lo_nm, hi_nm)
     T = lambda a: torch.as_tensor(np.asarray(a, float), dtype=dtype)  # noqa: E731
     directions = zenith_azimuth_to_enu(T(cap.view_zenith), T(cap.view_azimuth))
@@ -456,7 +515,8 @@ def observation_from_kider(
         location={"latitude_deg": cap.latitude_deg, "longitude_deg": cap.longitude_deg, "elevation_m": cap.elevation_m},
         metadata={
             "ring": torch.as_tensor(cap.ring), "index": torch.as_tensor(cap.index), "azimuth_offset_guess_rad": guess,
-            "mask": {"valid": int(cap.valid.sum()), "min_sun_distance_deg": min_sun_distance_deg},
+            "mask": {"valid": int(cap.valid.sum()), "min_sun_distance_deg": min_sun_distance_deg,
+                     **({"broken": [cap.dropped[i] for i in sorted(cap.dropped)]} if cap.dropped else {})},
             "notes": list(cap.notes) + [f"sample {k}: {v}" for k, v in cap.repaired.items()],
             "time_source": cap.time_source,
         },

@@ -97,15 +97,16 @@ class ParameterSpec:
     def inverse(self, v: float, hi: float | None = None) -> float:
         """Unconstrained value of the physical ``v``; FitError when v is outside the range."""
         top = self.hi if hi is None else hi
+        unit = "" if self.unit == "1" else f" {self.unit}"  # a dimensionless value has no unit to print
         if not math.isfinite(v):
             raise FitError(f"{self.name} must be finite, got {v}")
         if self.transform == "log":
             if not v > 0:
-                raise FitError(f"{self.name} must be > 0 {self.unit}, got {v}")
+                raise FitError(f"{self.name} must be > 0{unit}, got {v}")
             return math.log(v / self.ref)
         if self.transform in ("interval", "loginterval"):
             if not self.lo < v < top:
-                raise FitError(f"{self.name} must lie in the open interval ({self.lo:g}, {top:g}) {self.unit}, got {v}")
+                raise FitError(f"{self.name} must lie in the open interval ({self.lo:g}, {top:g}){unit}, got {v}")
             if self.transform == "interval":
                 u = (v - self.lo) / (top - self.lo)
             else:
@@ -168,6 +169,15 @@ DEFAULT_PER_OBSERVATION: tuple[str, ...] = ("exposure",) + ORIENTATION
 """Nuisance parameters that take one value per observation unless the config says otherwise."""
 
 _NUISANCE_DEFAULTS = {"exposure": 1.0, "noise_scale": 1.0, **{n: 0.0 for n in ORIENTATION}}
+
+
+def as_number(value, name: str) -> float:
+    """``value`` as a float; FitError naming the parameter when it is not a number (a string, a list, None, a bool)."""
+    if isinstance(value, (Tensor, np.ndarray)) and value.ndim == 0:  # a 0-d tensor or array holds one number
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise FitError(f"{name} must be a number, got {value!r}")
+    return float(value)
 
 
 def check_names(names: Iterable[str], what: str = "free parameter") -> list[str]:
@@ -338,7 +348,7 @@ class Parameterisation:
         check_names([name], "parameter")
         spec = PARAMETERS[name]
         if isinstance(value, (list, tuple, np.ndarray)):
-            vals = [float(v) for v in value]
+            vals = [as_number(v, name) for v in value]
             if not self.is_per_observation(name):
                 if len(set(vals)) != 1:
                     raise FitError(f"{name} is shared by all observations; got one value per observation {vals}")
@@ -346,7 +356,7 @@ class Parameterisation:
             elif len(vals) != self.n_observations:
                 raise FitError(f"{name}: {len(vals)} values for {self.n_observations} observation(s)")
         else:
-            vals = [float(value)]
+            vals = [as_number(value, name)]
         for v in vals:
             spec.inverse(v, self._hi(name))  # range check
         if self.is_per_observation(name) and len(vals) == 1:

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from ..atmosphere import Atmosphere, atmosphere_from_config
+from ..resources import AUTOGRAD, BASE_MEMORY_BYTES, Estimate, single_scattering_estimate, tables_estimate
 from ..atmosphere.wavelengths import DEFAULT_WAVELENGTHS, parse_wavelengths
 from ..render.auto import fit_overrides
 from ..transmittance import integrator_from_spec
@@ -96,17 +97,79 @@ class FitSettings:
 
 FIT_SECTION_KEYS = frozenset(f.name for f in dataclasses.fields(FitSettings))
 
+_INF = float("inf")
+SETTING_RANGES: dict[str, tuple[str, float, float, str]] = {
+    # name: (kind, lo, hi, interval as "[]", "[)", "()" or "(]")
+    "orders": ("int", 1, _INF, "[)"), "view_samples": ("int", 1, _INF, "[)"), "starts": ("int", 1, _INF, "[)"),
+    "seed": ("int", 0, _INF, "[)"), "adam_steps": ("int", 0, _INF, "[)"), "max_iter": ("int", 1, _INF, "[)"),
+    "lut_directions": ("int", 1, _INF, "[)"), "lut_samples": ("int", 1, _INF, "[)"), "max_samples": ("int", 1, _INF, "[)"),
+    "grad_tol": ("float", 0, _INF, "()"), "rel_tol": ("float", 0, _INF, "()"),
+    "min_elevation_deg": ("float", -90, 90, "[)"), "sun_disc_deg": ("float", 0, 180, "[)"),
+    "saturation": ("float", 0, _INF, "()"), "sigma_relative": ("float", 0, _INF, "[)"),
+    "bin_nm": ("float", 0, _INF, "()"), "select_heldout": ("float", 0, 1, "[)"),
+}
+"""Type and range of the numeric fit settings, checked with the setting's name and where it came from
+before any work (docs/reliability.md)."""
+_CHOICES = {"multiple": ("hillaire", "bruneton"), "select_sigma": ("scaled", "known"), "dtype": tuple(DTYPES)}
+_STRINGS = ("loss", "integrator", "rule", "wavelengths", "accuracy")
 
-def fit_settings(section: dict | None, overrides: dict | None = None) -> FitSettings:
-    """Merge the config's ``fit:`` section and overrides (None values are ignored); FitError when invalid."""
+
+def coerce_setting(name: str, value, ranges: dict = SETTING_RANGES):
+    """A numeric setting written as a string (PyYAML reads ``1e-7`` as one) as its number; anything else as is."""
+    if name in ranges and isinstance(value, str):
+        try:
+            return int(value) if ranges[name][0] == "int" else float(value)
+        except ValueError:
+            return value
+    return value
+
+
+def check_setting(name: str, value, label: str, ranges: dict = SETTING_RANGES) -> None:
+    """FitError ``'<label> must be ..., got <value>'`` unless ``value`` has the setting's type and range (None passes)."""
+    if value is None:
+        return
+    if name in ranges:
+        kind, lo, hi, brackets = ranges[name]
+        is_int = isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+        is_num = is_int or (isinstance(value, (float, np.floating)) and kind == "float")
+        if not is_num:
+            raise FitError(f"{label} must be {'an integer' if kind == 'int' else 'a number'}, got {value!r}")
+        v = float(value)
+        ok = (lo <= v if brackets[0] == "[" else lo < v) and (v <= hi if brackets[1] == "]" else v < hi)
+        if not ok or v != v:
+            rng = (f">= {lo:g}" if brackets[0] == "[" else f"> {lo:g}") if hi == _INF else f"in {brackets[0]}{lo:g}, {hi:g}{brackets[1]}"
+            raise FitError(f"{label} must be {rng}, got {value!r}")
+    elif name in _CHOICES:
+        if value not in _CHOICES[name]:
+            raise FitError(f"{label} must be one of {', '.join(_CHOICES[name])}, got {value!r}")
+    elif name in _STRINGS:
+        if not isinstance(value, str):
+            raise FitError(f"{label} must be a string, got {value!r}")
+    elif name == "per_sample_sun" and not isinstance(value, bool):
+        raise FitError(f"{label} must be true or false, got {value!r}")
+
+
+def fit_settings(section: dict | None, overrides: dict | None = None, where: str = "") -> FitSettings:
+    """Merge the config's ``fit:`` section and overrides (None values are ignored); FitError when invalid.
+
+    ``where`` names the config in messages about its ``fit:`` section (e.g. ``config sky.yaml``).
+    """
     if section is not None and not isinstance(section, dict):
-        raise FitError(f"config section 'fit' must be a mapping, got {section!r}")
+        raise FitError(f"{where + ': ' if where else ''}config section 'fit' must be a mapping, got {section!r}")
     section = dict(section or {})
     overrides = {k: v for k, v in (overrides or {}).items() if v is not None}
-    for where, d in (("in config section 'fit'", section), ("among the fit settings", overrides)):
+    prefix = f"{where}: " if where else ""
+    for place, d in (("in config section 'fit'", section), ("among the fit settings", overrides)):
         unknown = set(d) - FIT_SECTION_KEYS
         if unknown:
-            raise FitError(f"unknown key(s) {sorted(unknown)} {where}; known: {sorted(FIT_SECTION_KEYS)}")
+            raise FitError(f"{prefix if d is section else ''}unknown key(s) {sorted(unknown)} {place}; "
+                           f"known: {sorted(FIT_SECTION_KEYS)}")
+    section = {k: coerce_setting(k, v) for k, v in section.items()}
+    overrides = {k: coerce_setting(k, v) for k, v in overrides.items()}
+    for k, v in section.items():
+        check_setting(k, v, f"{prefix}fit.{k}")
+    for k, v in overrides.items():
+        check_setting(k, v, k)
     merged = {**section, **overrides}
     for key in ("free", "per_observation"):
         v = merged.get(key)
@@ -263,11 +326,42 @@ class Prepared:
         param = Parameterisation(self.base, list(free), len(self.observations), per_observation, values or {})
         return FitProblem(param, self.model, self.observations, self.loss, base_sun_distance_au=self.base_dist)
 
+    def estimate(self, *, evaluations: float = 1.0, batch: int = 1, autograd: bool = True, what: str = "fit") -> Estimate:
+        """:func:`run_estimate` of this problem's renderer, data and atmosphere."""
+        return run_estimate(self.model, self.observations, self.base, evaluations=evaluations, batch=batch,
+                            autograd=autograd, what=what)
+
     def fit_problem(self) -> FitProblem:
         """The problem of the settings' own free set (:func:`default_free` when unset) and initial values."""
         s = self.settings
         free = list(s.free) if s.free is not None else default_free(self.observations)
         return self.problem(free, s.per_observation, initial_values(s, self.observations, free, s.per_observation))
+
+
+def run_estimate(model: SkyModel, observations: Sequence[Observation], base: Atmosphere, *, evaluations: float = 1.0,
+                 batch: int = 1, autograd: bool = True, what: str = "fit") -> Estimate:
+    """Memory and time of ``evaluations`` loss evaluations of ``model`` on ``observations``, each of ``batch``
+    parameter vectors at once (the sampler's half ensemble), differentiated when ``autograd`` (skyfit.resources)."""
+    m = model
+    rays = float(sum(o.n_samples for o in observations)) * batch
+    n_w = int(base.wavelengths.numel())
+    nbytes = torch.finfo(base.dtype).bits // 8
+    device = str(base.device)
+    est = single_scattering_estimate(rays, n_w, m.view_samples, m.integrator.settings(), dtype_bytes=nbytes,
+                                     evaluations=evaluations, autograd=autograd, device=device, what=what)
+    if m.orders > 1 and m.multiple == "bruneton":
+        shape = tuple(m.table_sizes or m.REDUCED_TABLES)[4:]
+        t = tables_estimate(shape, n_w, m.orders, dtype_bytes=nbytes, device=device)
+        grow = AUTOGRAD if autograd else 1.0
+        est = Estimate(what, max(est.memory_bytes, t.memory_bytes * grow * batch),
+                       est.seconds + t.seconds * grow * batch * evaluations, f"{est.detail}; tables {t.detail}")
+    elif m.orders > 1:  # Hillaire's LUT: directions x steps for each texel, per evaluation
+        texels = float(m.lut_size[0] * m.lut_size[1] * m.lut_directions) * batch
+        lut = single_scattering_estimate(texels, n_w, m.lut_samples, None, dtype_bytes=nbytes, evaluations=evaluations,
+                                         autograd=autograd, device=device)
+        est = Estimate(what, est.memory_bytes + lut.memory_bytes - BASE_MEMORY_BYTES, est.seconds + lut.seconds,
+                       f"{est.detail}; LUT {m.lut_size[0]}x{m.lut_size[1]}x{m.lut_directions} directions")
+    return est
 
 
 def prepare(data: Sequence[str | Path | Observation], config: dict, s: FitSettings, *, kider_site: dict | None = None,

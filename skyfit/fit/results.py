@@ -8,6 +8,7 @@ fitted atmosphere (:func:`atmosphere_from_result`) from it.
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 
@@ -93,6 +94,9 @@ def check_result(res, where: str) -> dict:
     """``res`` when it is a skyfit fit result dict; FitError naming ``where`` otherwise."""
     if not isinstance(res, dict):
         raise FitError(f"{where}: a RESULT.json must hold a JSON object")
+    version = res.get("skyfit_result", RESULT_VERSION)  # absent: written before the key existed
+    if version != RESULT_VERSION:
+        raise FitError(f"{where}: RESULT.json format version {version!r}; this skyfit reads version {RESULT_VERSION}")
     missing = [k for k in REQUIRED_RESULT_KEYS if k not in res]
     if missing:
         raise FitError(f"{where}: not a skyfit fit result (missing {', '.join(missing)})")
@@ -101,12 +105,55 @@ def check_result(res, where: str) -> dict:
     unknown = [k for k in res["parameters"] if k not in PARAMETERS]
     if unknown:
         raise FitError(f"{where}: unknown parameter(s) {unknown}")
+    for key in ("free", "per_observation"):
+        names = res.get(key, [])
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise FitError(f"{where}: {key} must be a list of parameter names, got {names!r}")
+        bad = [n for n in names if n not in PARAMETERS]
+        if bad:
+            raise FitError(f"{where}: unknown parameter(s) {bad} in {key}")
+    used = set(res.get("free", [])) | set(((res.get("settings") or {}) if isinstance(res.get("settings"), dict) else {})
+                                          .get("initial", None) or {})
+    for name, value in res["parameters"].items():
+        _check_result_value(name, value, name in used, where)
     return res
+
+
+def _check_result_value(name: str, value, used: bool, where: str) -> None:
+    """FitError naming ``where`` and the parameter unless ``value`` is a finite number (a list for a
+    per-observation one) in the parameter's physical range; the fit's open range when it is ``used``
+    (free or set in fit.initial), as the fit itself requires."""
+    spec = PARAMETERS[name]
+    vals = value if isinstance(value, list) and spec.nuisance else [value]
+    unit = "" if spec.unit == "1" else f" {spec.unit}"
+    for v in vals:
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            shown = "null (NaN)" if v is None else repr(v)
+            raise FitError(f"{where}: parameter {name} must be a number, got {shown}")
+        if not math.isfinite(v):
+            raise FitError(f"{where}: parameter {name} must be finite, got {v}")
+        if spec.transform == "log":
+            ok, rng = (v > 0, f"> 0{unit}") if spec.nuisance else (v >= 0, f">= 0{unit}")
+        elif spec.transform == "loginterval":
+            ok, rng = v > 0, f"> 0{unit}"
+        elif spec.transform == "interval":
+            ok, rng = spec.lo <= v <= spec.hi, f"in [{spec.lo:g}, {spec.hi:g}]{unit}"
+        else:
+            ok, rng = True, ""
+        if not ok:
+            raise FitError(f"{where}: parameter {name} = {v:g}{unit} is out of range (must be {rng})")
+        if used and name != "ground_albedo_scale":  # its upper bound depends on the config's albedo
+            try:
+                spec.inverse(float(v))
+            except FitError as e:
+                raise FitError(f"{where}: parameter {e}") from None
 
 
 def read_result(path: str | Path) -> dict:
     """A RESULT.json written by ``skyfit fit`` (or :meth:`skyfit.FitResult.save`); FitError naming the file otherwise."""
     p = Path(path)
+    if p.is_dir():
+        raise FitError(f"{p} is a folder, not a RESULT.json file")
     if not p.is_file():
         raise FitError(f"result file not found: {p}")
     try:

@@ -20,11 +20,12 @@ from .losses import make_loss
 from .problem import fit_settings, load_data, prepare
 from .results import check_result_path, fitted_atmosphere_values, model_from_result, read_result, write_result
 from .select import run_select
+from ..resources import MAX_RUN_SECONDS, check
 
 
 def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overrides: dict | None = None,
             config_source: str = "", kider_site: dict | None = None, plots: bool = True, progress: bool = False,
-            laplace: bool = False, select: bool = False, device="cpu") -> dict:
+            laplace: bool = False, select: bool = False, device="cpu", force: bool = False) -> dict:
     """Fit DATA, write RESULT.json (and plots beside it), return the result dict.
 
     Args:
@@ -41,6 +42,7 @@ def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overri
         device: where the fit runs (cpu, cuda, cuda:N; the observations and the atmosphere go there).
         select: choose the model by the ladder of :mod:`skyfit.fit.select` (docs/selection.md);
             RESULT.json then holds the chosen model and ``selection``.
+        force: run even when the memory or time estimate says no (skyfit.resources).
     """
     t0 = time.perf_counter()
     out = check_result_path(out)
@@ -49,9 +51,13 @@ def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overri
     if select:  # the model ladder (skyfit.fit.select) chooses the atmosphere's components
         return run_select(data, config, out, overrides=overrides, config_source=config_source, kider_site=kider_site,
                           plots=plots, progress=progress, laplace=laplace, device=device)
-    prep = prepare(data, config, fit_settings(config.get("fit"), overrides), kider_site=kider_site, device=device)
+    prep = prepare(data, config, fit_settings(config.get("fit"), overrides, where=f"config {config_source}"),
+                   kider_site=kider_site, device=device)
     problem = prep.fit_problem()
     s = prep.settings
+    check(prep.estimate(evaluations=s.starts * (s.adam_steps + 2 * s.max_iter)), force=force, max_seconds=MAX_RUN_SECONDS,
+          device=str(device), hint="reduce --max-samples, --view-samples, the --integrator's samples, --starts, --max-iter or --adam-steps, "
+               "or add --force")
     res = fit(problem, s.options(progress))
     return write_result(problem, res, out, command="fit", settings=dataclasses.asdict(s), config=config,
                         config_source=config_source, base_dist=prep.base_dist, dtype=s.dtype, t0=t0, laplace=laplace,
@@ -90,7 +96,7 @@ def _nuisance_for(res: dict, obs: Observation, name: str):
 
 def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_nuisance: bool = False,
                  kider_site: dict | None = None, progress: bool = False, refit: Sequence[str] | None = None,
-                 device="cpu") -> dict:
+                 device="cpu", force: bool = False) -> dict:
     """How well a fitted atmosphere predicts DATA, with DATA's own sun position (CONTRACT.md).
 
     Without ``refit_nuisance`` the fitted exposure and offsets are used (the observation's own
@@ -114,6 +120,9 @@ def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_n
         prep = prepare(observations, res["config"], s, model=model, device=device)
     except ValueError as e:
         raise FitError(f"{result_path}: its config cannot be rebuilt: {e}") from None
+    check(prep.estimate(evaluations=1 + (10 + 2 * 60 if refit_nuisance else 0), autograd=refit_nuisance,
+                        what=f"evaluate with the renderer of {result_path}"),
+          force=force, max_seconds=MAX_RUN_SECONDS, device=str(device), hint="add --force to run it anyway")
     dtype = s.torch_dtype
     # The atmosphere moves away from the config only in the parameters that were fitted or set in fit.initial.
     atm_values = fitted_atmosphere_values(res)

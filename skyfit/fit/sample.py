@@ -19,6 +19,7 @@ this module                :class:`SampleSettings`, :func:`sample_posterior` (ch
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 import time
 from pathlib import Path
@@ -35,10 +36,11 @@ from .model import FitProblem
 from .parameters import NUISANCE, PARAMETERS
 from .posterior import LogPosterior
 from .priors import Prior, SampleError, make_priors
-from .problem import fit_settings, prepare
+from .problem import check_setting, coerce_setting, fit_settings, prepare, run_estimate
 from .report import dumps, write_text_atomic
 from .results import read_result
 from .sample_plots import write_plots
+from ..resources import BASE_MEMORY_BYTES, MAX_RUN_SECONDS, Estimate, chain_estimate, check
 
 __all__ = ["SAMPLE_VERSION", "SUMMARY_FILE", "SampleError", "SampleSettings", "build_problem", "run_sample",
            "sample_posterior", "sample_settings"]
@@ -93,6 +95,10 @@ def sample_posterior(problem: FitProblem, x0: Tensor, out_dir: str | Path | None
     meta = {"signature": model_signature(problem), "walkers": walkers, "seed": seed, "steps_requested": steps,
             "x0": x0.detach().cpu().double().tolist(), "priors": {n: pr.settings() for n, pr in priors.items()}}
     backend = None
+    if resume and chain_path is not None and not chain_path.exists():
+        # resume = continue what exists, start what does not (a job killed before its first checkpoint)
+        print(f"skyfit sample: --resume: no chain {chain_path} yet; starting a new chain", file=sys.stderr)
+        resume = False
     if resume:
         if chain_path is None or not chain_path.is_file():
             raise SampleError(f"--resume: no chain file {chain_path} to continue")
@@ -217,13 +223,34 @@ class SampleSettings:
     max_samples: int | None = None
 
 
-def sample_settings(section: dict | None, overrides: dict | None = None) -> SampleSettings:
+SAMPLE_RANGES: dict[str, tuple[str, float, float, str]] = {
+    "walkers": ("int", 2, math.inf, "[)"), "steps": ("int", 1, math.inf, "[)"), "seed": ("int", 0, math.inf, "[)"),
+    "view_samples": ("int", 1, math.inf, "[)"), "checkpoint_seconds": ("float", 0, math.inf, "()"),
+    "predictive_draws": ("int", 1, math.inf, "[)"), "init_scale": ("float", 0, math.inf, "()"),
+    "max_samples": ("int", 1, math.inf, "[)"),
+}
+"""Type and range of the numeric sample settings (:func:`skyfit.fit.problem.check_setting`)."""
+
+
+def sample_settings(section: dict | None, overrides: dict | None = None, where: str = "") -> SampleSettings:
+    """Merge the config's ``sample:`` section and overrides (None values are ignored); SampleError when invalid.
+
+    ``where`` names the config in messages about its ``sample:`` section.
+    """
+    if section is not None and not isinstance(section, dict):
+        raise SampleError(f"{where + ': ' if where else ''}config section 'sample' must be a mapping, got {section!r}")
     section = dict(section or {})
     known = {f.name for f in dataclasses.fields(SampleSettings)}
     unknown = set(section) - known
     if unknown:
         raise SampleError(f"unknown key(s) {sorted(unknown)} in config section 'sample'; known: {sorted(known)}")
-    merged = {**section, **{k: v for k, v in (overrides or {}).items() if v is not None}}
+    flags = {k: coerce_setting(k, v, SAMPLE_RANGES) for k, v in (overrides or {}).items() if v is not None}
+    section = {k: coerce_setting(k, v, SAMPLE_RANGES) for k, v in section.items()}
+    for k, v in section.items():
+        check_setting(k, v, f"{where + ': ' if where else ''}sample.{k}", SAMPLE_RANGES)
+    for k, v in flags.items():
+        check_setting(k, v, k, SAMPLE_RANGES)
+    merged = {**section, **flags}
     s = SampleSettings(**merged)
     if not isinstance(s.priors, dict):
         raise SampleError(f"sample.priors must map parameter names to prior specs, got {s.priors!r}")
@@ -270,14 +297,20 @@ def build_problem(data, config: dict, init: dict, init_path, kider_site: dict | 
 
 def run_sample(data, config: dict, init_path, out_dir, *, overrides: dict | None = None, kider_site: dict | None = None,
                resume: bool = False, progress: bool = False, plots: bool = True, laplace: bool = True,
-               device="cpu") -> dict:
-    """``skyfit sample``: rebuild the fit's problem, sample it, write DIR/chain.h5, summary.json and plots."""
+               device="cpu", force: bool = False, config_source: str = "") -> dict:
+    """``skyfit sample``: rebuild the fit's problem, sample it, write DIR/chain.h5, summary.json and plots.
+
+    ``force`` runs even when the memory or time estimate says no (skyfit.resources); ``config_source``
+    names the config in messages about its ``sample:`` section.
+    """
     init = read_result(init_path)
     if not init.get("free"):
         raise SampleError(f"{init_path}: the fit has no free parameter to sample")
     if not isinstance(config, dict):
         raise SampleError("config must be a mapping")
-    ss = sample_settings(config.get("sample"), overrides)
+    ss = sample_settings(config.get("sample"), overrides, where=f"config {config_source}" if config_source else "")
+    hint = "reduce --walkers, --steps, --view-samples or the --integrator's samples, or add --force"
+    check(chain_estimate(ss.walkers, ss.steps, len(init["free"])), force=force, hint=hint)
     t0 = time.perf_counter()
     cheap = ss.integrator is not None or ss.view_samples is not None or ss.rule is not None or ss.accuracy is not None
     problem, x0 = build_problem(data, config, init, init_path, kider_site, ss.integrator, ss.view_samples, ss.rule,
@@ -290,6 +323,13 @@ def run_sample(data, config: dict, init_path, out_dir, *, overrides: dict | None
     P = problem.param.size
     if ss.walkers < 2 * P:
         raise SampleError(f"--walkers {ss.walkers} is fewer than 2 x {P} free parameters; use at least {2 * P}")
+    base = problem.param.base
+    run = run_estimate(problem.model, problem.observations, base, evaluations=2 * ss.steps, batch=max(ss.walkers // 2, 1),
+                       autograd=False, what="sample")
+    chain = chain_estimate(ss.walkers, ss.steps, P)
+    both = Estimate("sample", run.memory_bytes + chain.memory_bytes - BASE_MEMORY_BYTES, run.seconds,
+                    f"{chain.detail}; {run.detail}")
+    check(both, force=force, max_seconds=MAX_RUN_SECONDS, device=str(base.device), hint=hint)
     if not resume and (Path(out_dir) / CHAIN_FILE).exists():
         raise SampleError(f"{Path(out_dir) / CHAIN_FILE} exists; continue it with --resume or choose another --out")
     priors = make_priors(problem, ss.priors)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_path
+from .atomic import OutputError, atomic_path
 
 METADATA_KEY = "skyfit"
 """EXR header attribute holding skyfit's metadata as a JSON string."""
@@ -36,10 +36,14 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray], metadata: dict 
             header[METADATA_KEY] = json.dumps(metadata, sort_keys=True)
         except (TypeError, ValueError) as e:
             raise ExrError(f"EXR metadata for {path} is not JSON-serialisable: {e}") from None
-    data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
+    # float16 arrays stay HALF channels (LUTs in half precision); everything else is written as float32.
+    data = {k: np.ascontiguousarray(v, dtype=np.float16 if np.asarray(v).dtype == np.float16 else np.float32)
+            for k, v in channels.items()}
     try:
         with atomic_path(path, ".tmp.exr") as tmp:
             OpenEXR.File(header, data).write(str(tmp))
+    except OutputError:  # already one line naming the file
+        raise
     except OSError as e:
         raise ExrError(f"cannot write EXR {path}: {e.strerror or e}") from None
     except Exception as e:  # the binding raises plain exceptions (RuntimeError, ValueError)
@@ -54,8 +58,11 @@ def read_exr(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
     path = Path(path)
     if not path.is_file():
         raise ExrError(f"file not found: {path}")
-    with open(path, "rb") as f:
-        magic = f.read(4)
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(4)
+    except OSError as e:  # unreadable (permissions, I/O): name the file
+        raise ExrError(f"cannot read {path}: {e.strerror or e}") from None
     if magic != b"\x76\x2f\x31\x01":
         raise ExrError(f"not an OpenEXR file: {path}")
     try:

@@ -65,6 +65,7 @@ __all__ = [
     "symmetry_azimuth",
     "noise_sigma",
     "box_weights",
+    "broken_samples",
     "ring_symmetry_azimuths",
 ]
 
@@ -85,6 +86,16 @@ SCAN_DURATION_S: float = 342.0
 """Median first-to-last time of the 14 irradiance logs of 2013-05-27 (341-343 s) [s]."""
 
 WAVELENGTH_RANGE_NM = (350.0, 2500.0)
+
+FIT_BAND_NM = (360.0, 720.0)
+"""The band a sample must be positive in to be used: the published score's 360-720 nm, where the
+clear sky's radiance is 0.01-0.6 W/(m^2 sr nm) [nm]."""
+NEGATIVE_NOISE_FLOOR: float = 0.01
+"""Negative values down to minus this are detector noise, kept [W/(m^2 sr nm)]: the captures of
+2013-05-27 hold 13,500-16,400 negative values each, all in the water-vapour bands beyond 1350 nm
+where the signal is ~0, the lowest -0.0034 (docs/reliability.md). A value below minus this, or
+NaN/Inf anywhere, or a value <= 0 in :data:`FIT_BAND_NM`, marks the sample as broken: it is left
+out and the reason recorded in ``KiderCapture.dropped``."""
 
 _CAPTURE_RE = re.compile(r"^(\d{4})-(\d{2})-(\d{2})___(\d{2})\.(\d{2})\.(\d{2})$")
 _FILE_RE = re.compile(r"^(?P<cap>.+)_-_(?P<idx>\d+)____(?P<az>[-+]?\d+(?:\.\d*)?)___(?P<el>[-+]?\d+(?:\.\d*)?)"
@@ -193,8 +204,11 @@ class KiderCapture:
         ghi: the pyranometer's global horizontal irradiance per sample, shape
             (81,), or None without a log. [W/m^2]
         valid: samples to use, shape (81,) bool: finite everywhere, positive
-            in 360-720 nm, and at least ``min_sun_distance_deg`` from the sun.
+            in 360-720 nm, nowhere below -:data:`NEGATIVE_NOISE_FLOOR`, and at least
+            ``min_sun_distance_deg`` from the sun.
         repaired: sample index -> what was done to it.
+        dropped: sample index -> why its data is broken (NaN/Inf, values below the noise floor,
+            <= 0 in 360-720 nm); these samples are not valid.
         notes: anything else worth knowing (e.g. why the log was ignored).
     """
 
@@ -227,6 +241,7 @@ class KiderCapture:
     valid: np.ndarray
     repaired: dict
     notes: list
+    dropped: dict = dataclasses.field(default_factory=dict)
 
     @property
     def sigma(self) -> np.ndarray:
@@ -447,9 +462,8 @@ def load_kider_capture(folder, *, latitude: float = KIDER_LATITUDE_DEG, longitud
         repaired[0] = (f"replaced by the mean of samples {left} and {right} (raw / neighbours' mean "
                        f"= {ratio:.3f} in 360-720 nm)")
 
-    band = (wl0 >= 360) & (wl0 <= 720)
-    valid = (np.all(np.isfinite(radiance), axis=1) & np.all(radiance[:, band] > 0, axis=1)
-             & (np.degrees(sun_angle) >= float(min_sun_distance_deg)))
+    dropped = broken_samples(wl0, radiance, [entries[i][2].name for i in range(N_SAMPLES)])
+    valid = np.array([i not in dropped for i in range(N_SAMPLES)]) & (np.degrees(sun_angle) >= float(min_sun_distance_deg))
 
     return KiderCapture(
         path=folder, name=folder.name, wavelengths=wl0, radiance=radiance, sigma_random=rnd,
@@ -459,7 +473,37 @@ def load_kider_capture(folder, *, latitude: float = KIDER_LATITUDE_DEG, longitud
         sun_zenith=math.radians(float(sun.zenith)), sun_azimuth=math.radians(float(sun.azimuth)),
         sample_sun_zenith=s_zen, sample_sun_azimuth=s_az, sun_distance_au=float(sun.distance_au),
         sun_angle=sun_angle, latitude_deg=float(latitude), longitude_deg=float(longitude),
-        elevation_m=float(elevation), ghi=ghi, valid=valid, repaired=repaired, notes=notes)
+        elevation_m=float(elevation), ghi=ghi, valid=valid, repaired=repaired, notes=notes, dropped=dropped)
+
+
+def broken_samples(wavelengths: np.ndarray, radiance: np.ndarray, names=None) -> dict[int, str]:
+    """Samples whose spectrum is broken, with the reason: sample index -> one phrase.
+
+    Broken (docs/reliability.md): a NaN or Inf anywhere; a value below -:data:`NEGATIVE_NOISE_FLOOR`
+    anywhere; a value <= 0 in :data:`FIT_BAND_NM`. Negative values above the floor are detector
+    noise where the sky is dark (the water-vapour bands) and leave the sample in use.
+
+    Args:
+        wavelengths: shape (W,). [nm]
+        radiance: shape (N, W). [W/(m^2 sr nm)]
+        names: the file of each sample, for the reasons (optional).
+    """
+    band = (wavelengths >= FIT_BAND_NM[0]) & (wavelengths <= FIT_BAND_NM[1])
+    out: dict[int, str] = {}
+    with np.errstate(invalid="ignore"):
+        for i, row in enumerate(radiance):
+            where = f"sample {i}" + (f" ({names[i]})" if names is not None else "")
+            finite = np.isfinite(row)
+            if not finite.all():
+                out[i] = f"{where}: {int((~finite).sum())} NaN/Inf value(s)"
+            elif (row < -NEGATIVE_NOISE_FLOOR).any():
+                k = int(np.argmin(row))
+                out[i] = (f"{where}: {row[k]:.3g} W/(m^2 sr nm) at {wavelengths[k]:g} nm, below the "
+                          f"-{NEGATIVE_NOISE_FLOOR:g} noise floor")
+            elif not (row[band] > 0).all():
+                out[i] = (f"{where}: {int((row[band] <= 0).sum())} value(s) <= 0 in "
+                          f"{FIT_BAND_NM[0]:g}-{FIT_BAND_NM[1]:g} nm")
+    return out
 
 
 # --------------------------------------------------------------------------

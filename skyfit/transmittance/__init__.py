@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import math
 
 from .base import ColumnFn, OpticalDepthIntegrator
 from .ozone import ozone_column
@@ -55,6 +56,8 @@ def make_integrator(name: str, **settings) -> OpticalDepthIntegrator:
         return cls(**settings)
     except TypeError as e:
         raise ValueError(f"bad settings for integrator {name!r}: {e}") from None
+    except ValueError as e:  # a hyperparameter out of range: name the integrator
+        raise ValueError(f"integrator {name!r}: {e}") from None
 
 
 def parse_integrator(text: str) -> OpticalDepthIntegrator:
@@ -64,21 +67,41 @@ def parse_integrator(text: str) -> OpticalDepthIntegrator:
     Taylor pairs of ``skyfit calibrate-integrator``: ``taylor:a=0.367/0.424,b=0.359/0.116``.
     """
 
-    def number(val: str):
-        val = val.strip()
-        try:
-            return int(val) if val.lstrip("-").isdigit() else float(val)
-        except ValueError:
-            return val
-
     name, _, opts = text.partition(":")
+    name = name.strip()
+    cls = integrator_class(name)
+    params = {k: p for k, p in inspect.signature(cls.__init__).parameters.items() if k != "self"}
     settings: dict = {}
     for item in filter(None, opts.split(",")):
         key, eq, val = item.partition("=")
         if not eq:
             raise ValueError(f"integrator option must be key=value, got {item!r}")
-        settings[key.strip()] = [number(v) for v in val.split("/")] if "/" in val else number(val)
-    return make_integrator(name.strip(), **settings)
+        key = key.strip()
+        if key not in params:
+            raise ValueError(f"integrator {name!r} has no option {key!r}; its options: {', '.join(params) or 'none'}")
+        kind = str(params[key].annotation)
+        convert = (lambda v: _option_value(name, key, v, kind))  # noqa: E731
+        settings[key] = [convert(v) for v in val.split("/")] if "/" in val else convert(val)
+    return make_integrator(name, **settings)
+
+
+def _option_value(name: str, key: str, text: str, kind: str):
+    """One ``key=value`` of an integrator spec as its annotation says: int, float or str."""
+    text = text.strip()
+    if kind.startswith("int"):
+        try:
+            return int(text)
+        except ValueError:
+            raise ValueError(f"integrator {name!r}: option {key} must be an integer, got {text!r}") from None
+    if kind.startswith("float"):
+        try:
+            v = float(text)
+        except ValueError:
+            raise ValueError(f"integrator {name!r}: option {key} must be a number, got {text!r}") from None
+        if not math.isfinite(v):
+            raise ValueError(f"integrator {name!r}: option {key} must be finite, got {text!r}")
+        return v
+    return text
 
 
 def integrator_from_spec(spec: str | dict) -> OpticalDepthIntegrator:
