@@ -639,16 +639,17 @@ def _add_batch_parser(sub) -> None:
     b.set_defaults(func=cmd_batch)
 
 
-def _envmap_atmosphere(source: str, wavelengths: str | None, sun_distance_au: float | None):
+def _envmap_atmosphere(source: str, wavelengths: str | None, sun_distance_au: float | None, device="cpu"):
     """``skyfit envmap``'s SOURCE: a RESULT.json (the fitted atmosphere) or a config (name or YAML)."""
     if Path(source).suffix.lower() == ".json":
         res = read_result(source)
         lam = parse_wavelengths(wavelengths) if wavelengths else None
         try:
-            return atmosphere_from_result(res, lam)
+            return atmosphere_from_result(res, lam, device=device)
         except (KeyError, TypeError) as e:
             raise UserError(f"{source}: malformed result ({e})") from None
-    return load_atmosphere(source, parse_wavelengths(wavelengths or DEFAULT_WAVELENGTHS), sun_distance_au=sun_distance_au)
+    return load_atmosphere(source, parse_wavelengths(wavelengths or DEFAULT_WAVELENGTHS), sun_distance_au=sun_distance_au,
+                           device=device)
 
 
 def cmd_envmap(args) -> int:
@@ -670,7 +671,7 @@ def cmd_envmap(args) -> int:
         check_writable(preview_path(out), what="--preview")
     sun_zenith, sun_azimuth, sun_info = _sun_from_args(args)
     sizes = _table_sizes(args.table_sizes)
-    atm = _envmap_atmosphere(args.source, args.wavelengths, sun_info.get("distance_au"))
+    atm = _envmap_atmosphere(args.source, args.wavelengths, sun_info.get("distance_au"), _check_device(args.device))
     t0 = time.perf_counter()
     env = envmap(atm, (sun_zenith, sun_azimuth), size=args.size, layout=args.format, sun_disk=args.sun_disk,
                  orders=args.orders, multiple=args.multiple, table_sizes=sizes, altitude=args.altitude,
@@ -719,6 +720,7 @@ def _add_envmap_parser(sub) -> None:
     v.add_argument("--wavelengths", help="START:STOP:STEP or comma list [nm] (default: the fit's, or "
                                          f"{DEFAULT_WAVELENGTHS} for a config)")
     v.add_argument("--altitude", type=float, default=0.0, help="observer altitude above the ground [m] (default 0)")
+    v.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
     v.add_argument("--json", action="store_true", help="print a JSON summary")
     v.set_defaults(func=cmd_envmap)
 
@@ -845,6 +847,8 @@ def _export_lut_wavelengths(args) -> int:
 def _before_work(parser: argparse.ArgumentParser, args) -> None:
     """Every check that needs no data: flag ranges, output paths, and the resource estimates that the
     flags alone determine (export-lut, envmap; render checks after ``--accuracy`` settles its flags)."""
+    if getattr(args, "device", None) is not None:  # a flag alone decides it: before anything is read
+        _check_device(args.device)
     check_flags(parser, args)
     check_specs(args)
     check_outputs(args)

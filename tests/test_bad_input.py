@@ -115,12 +115,19 @@ def test_ctrl_c_in_the_first_second_is_one_line_and_exit_130(tmp_path):
     if not SKYFIT.is_file():
         pytest.skip("the skyfit console script is not installed beside this Python")
     for delay in (0.8, 6.0):
+        # A pytest-xdist worker ignores SIGINT and its children inherit that: give the command the default
+        # handler a shell would, and never leave it running if the assertion fails.
         p = subprocess.Popen([str(SKYFIT), "render", "earth", "--out", str(tmp_path / "x.exr"), "--sun-zenith", "30",
                               "--size", "1024", "--view-samples", "128"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                             text=True, cwd=tmp_path)
-        time.sleep(delay)
-        p.send_signal(signal.SIGINT)
-        _, err = p.communicate(timeout=120)
+                             text=True, cwd=tmp_path,
+                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.default_int_handler))
+        try:
+            time.sleep(delay)
+            p.send_signal(signal.SIGINT)
+            _, err = p.communicate(timeout=120)
+        finally:
+            p.kill()
+            p.wait()
         assert p.returncode == 130 and err == "skyfit: interrupted\n", (delay, p.returncode, err)
     assert listing(tmp_path) == []
 

@@ -106,7 +106,7 @@ def test_single_scattering_is_reproduced_exactly(setup):
 
 # Measured with the tables above (8 r x 32 mu x 8 mu_s x 4 nu, orders 2, 400:700:50 nm), suns 0, 30, 60, 80, 90,
 # 95 deg, view zenith 1 deg x azimuth 30 deg steps, separate Mie texture: (median, max) of the per-channel relative
-# error by band [0-30, 30-60, 60-80, 80-85, 85-88, 88-90, ground]. docs/luts.md has the table at 2017's sizes
+# error by band [0-30, 30-60, 60-80, 80-85, 85-88, 88-90, ground]. docs/luts.md has the table at 16 x 64 x 16 x 8
 # (scripts/bruneton2017_accuracy.py). The sky's error is 2017's storage itself: S_multiple / P_R(nu) interpolated in
 # nu (skyfit's sampler on such a folded table differs from its unfolded one as much: max 12 % / 16 % at sun 30 / 60
 # deg with 4 nu texels); the ground's adds the sun and transmittance at three wavelengths.

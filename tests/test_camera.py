@@ -485,7 +485,7 @@ def test_cli_render_kannala_brandt_metadata_rebuilds_the_camera(tmp_path):
         (["--tilt", "95,0"], "--tilt"),
         (["--center", "3"], "--center takes 2"),
         (["--projection", "kannala_brandt", "--kb-coeffs", "0,-0.5,0,0"], "not monotone"),
-        (["--max-zenith", "200"], "max_zenith"),
+        (["--max-zenith", "200"], "--max-zenith"),  # the flag range check names the flag (docs/reliability.md)
     ],
 )
 def test_cli_render_bad_camera_options(tmp_path, capsys, opts, match):

@@ -23,6 +23,8 @@ COMMANDS = {
     "calibrate-integrator": lambda d: ["calibrate-integrator", "earth", "--out", d / "cal.json", "--quick"],
     "bench": lambda d: ["bench", "--quick", "--out", d / "bench"],
     "demo": lambda d: ["demo", "--quick", "--out", d / "demo"],
+    "envmap": lambda d: ["envmap", "earth", "--out", d / "sky.exr", "--sun-zenith", "40", "--size", "8"],
+    "batch": lambda d: ["batch", d / "missing.exr", "--config", "earth", "--out", d / "batch"],
 }
 BAD = ["bogus", "cuda:x", "tpu"] + ([] if torch.cuda.is_available() else ["cuda", "cuda:7"])
 

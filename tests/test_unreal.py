@@ -112,7 +112,7 @@ QUAD = Quadrature(density_theta=8, density_phi=16, irradiance_theta=8, irradianc
 def test_render_from_the_parameters_against_skyfit(earth):
     """Hillaire's model on the exported parameters vs Bruneton's 4 orders of the atmosphere (small tables), sun 60 deg.
 
-    Measured (docs/luts.md has 2017-size numbers from scripts/unreal_accuracy.py): median 1.4 %, max 8.0 %
+    Measured (docs/luts.md has 16 x 64 x 16 x 8 numbers from scripts/unreal_accuracy.py): median 1.4 %, max 8.0 %
     (unreal); the parameters alone (Bruneton on both) 0.39 % / 9.2 % (the Henyey-Greenstein phase near the sun).
     """
     with torch.no_grad():

@@ -325,7 +325,7 @@ def export_unreal(atm: Atmosphere, atm_rgb: Atmosphere, out_dir: str | Path, *, 
 
 
 def unreal_render_errors(atm_rgb: Atmosphere, view: torch.Tensor, sun_zenith_deg: float, tables=None,
-                         hillaire_settings: dict | None = None) -> dict:
+                         hillaire_settings: dict | None = None, cache: dict | None = None) -> dict:
     """Relative errors at 680/550/440 nm of the exported parameters' sky against skyfit's own, per direction.
 
     ``unreal``: Hillaire 2020's model (skyfit's implementation) on :func:`atmosphere_from_unreal`
@@ -336,10 +336,13 @@ def unreal_render_errors(atm_rgb: Atmosphere, view: torch.Tensor, sun_zenith_deg
         atm_rgb: the fitted atmosphere on 680, 550, 440 nm.
         view: unit ENU directions of the sky, shape (N, 3).
         tables: Bruneton's tables of ``atm_rgb`` (precomputed with its defaults when None).
+        cache: a dict kept between calls (several suns): the rebuilt atmosphere's tables and LUT.
     """
     from ..scattering.multiple import precompute, sky_radiance
 
-    ua = atmosphere_from_unreal(unreal_parameters(atm_rgb), atm_rgb)
+    cache = {} if cache is None else cache
+    ua = cache.get("atmosphere") or atmosphere_from_unreal(unreal_parameters(atm_rgb), atm_rgb)
+    cache["atmosphere"] = ua
     z = math.radians(sun_zenith_deg)
     sun = torch.tensor([0.0, math.sin(z), math.cos(z)], dtype=atm_rgb.dtype)
     r = torch.full_like(view[:, 2], atm_rgb.bottom_radius)
@@ -347,10 +350,13 @@ def unreal_render_errors(atm_rgb: Atmosphere, view: torch.Tensor, sun_zenith_deg
     with torch.no_grad():
         tables = tables or precompute(atm_rgb)
         ref = sky_radiance(tables, atm_rgb, *args)
-        ua_tables = precompute(ua, orders=tables.orders, sizes=tables.sizes, quadrature=tables.quadrature,
-                               mu_s_min=tables.mu_s_min)
-        mapped = sky_radiance(ua_tables, ua, *args)
+        if "tables" not in cache:
+            cache["tables"] = precompute(ua, orders=tables.orders, sizes=tables.sizes, quadrature=tables.quadrature,
+                                         mu_s_min=tables.mu_s_min)
+        mapped = sky_radiance(cache["tables"], ua, *args)
         hs = {"size": (32, 32), "directions": 64, "samples": 20, **(hillaire_settings or {})}
-        hil = hillaire_sky_radiance(ua, *args, make_integrator("gauss", samples=16), 32, lut=hillaire_lut(ua, **hs))
+        if "lut" not in cache:
+            cache["lut"] = hillaire_lut(ua, **hs)
+        hil = hillaire_sky_radiance(ua, *args, make_integrator("gauss", samples=16), 32, lut=cache["lut"])
     rel = lambda a: ((a - ref).abs() / ref).cpu().numpy()  # noqa: E731
     return {"unreal": rel(hil), "mapping": rel(mapped)}
