@@ -43,9 +43,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -55,7 +52,7 @@ from ..atmosphere import Atmosphere
 from ..scattering.bruneton_tables import extinction_matrix3, scattering_texel_params
 from ..scattering.multiple import PrecomputedAtmosphere
 from ..scattering.phase import rayleigh_phase
-from .lut import LutError, pack_scattering, rgb_matrix
+from .lut import LutError, lut_folder, pack_scattering, rgb_matrix
 
 LAMBDAS_RGB_NM = (680.0, 550.0, 440.0)
 """2017's kLambdaR, kLambdaG, kLambdaB [nm] (model.h): the wavelengths of the transmittance texture."""
@@ -268,15 +265,7 @@ def export_bruneton2017(tables: PrecomputedAtmosphere, out_dir: str | Path, *, p
                         "(constants.mu_s_min; the tables were computed at skyfit's equivalent constants.skyfit_mu_s_min)",
         "constants": consts,
     }
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        if out.exists() and not out.is_dir():
-            raise LutError(f"--out {out} exists and is not a directory")
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    except OSError as e:
-        raise LutError(f"cannot write LUTs to {out}: {e.strerror or e}") from None
-    names = list(files.values()) + list(_DAT.values()) + ["atmosphere.glsl", "lut.json"]
-    try:
+    with lut_folder(out) as tmp:
         for k, v in vals.items():
             ch = {c: v[..., i] for i, c in enumerate("RGBA"[: v.shape[-1]])}
             write_exr(tmp / files[k], ch, {"table": k, "layout": "bruneton2017", "precision": precision})
@@ -284,23 +273,6 @@ def export_bruneton2017(tables: PrecomputedAtmosphere, out_dir: str | Path, *, p
             (tmp / name).write_bytes(_dat(vals[k]))
         (tmp / "atmosphere.glsl").write_text(glsl_source(consts))
         (tmp / "lut.json").write_text(json.dumps(meta, indent=2))
-        if not out.exists():
-            mask = os.umask(0)
-            os.umask(mask)
-            os.chmod(tmp, 0o777 & ~mask)  # mkdtemp's 0700 -> a plain mkdir's mode
-            os.replace(tmp, out)
-        else:
-            for f in names:
-                os.replace(tmp / f, out / f)
-    except OSError as e:
-        raise LutError(f"cannot write LUTs to {out}: {e.strerror or e}") from None
-    except LutError:
-        raise
-    except Exception as e:  # ExrError and the like: already one line
-        raise LutError(f"cannot write LUTs to {out}: {e}") from None
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
     return out
 
 

@@ -22,10 +22,12 @@ when orders = 1.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +35,7 @@ import torch
 from torch import Tensor
 
 from ..atmosphere import Atmosphere
-from ..io.atomic import make_temp_dir
+from ..io.atomic import current_umask, make_temp_dir
 from ..scattering.bruneton_tables import TableSizes, extinction_matrix3
 from ..scattering.multiple import PrecomputedAtmosphere, Quadrature
 
@@ -144,6 +146,44 @@ def _lut_json(tables: PrecomputedAtmosphere, atm: Atmosphere, fmt: str, rgb: boo
     }
 
 
+@contextlib.contextmanager
+def lut_folder(out: str | Path) -> Iterator[Path]:
+    """A temporary folder beside ``out`` to write a set of LUT files into, all or nothing.
+
+    On success it becomes ``out`` (a new folder, with the umask's mode), or its files replace those
+    of an existing ``out`` one by one, ``lut.json`` last; on any failure nothing of it remains and
+    ``out`` is untouched. Its name lets a killed run's be recognised and removed (:mod:`skyfit.io.atomic`).
+
+    Raises:
+        LutError: one line naming ``out``.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise LutError(f"--out {out} exists and is not a directory")
+    try:
+        tmp = make_temp_dir(out)
+    except (OSError, ValueError) as e:
+        raise LutError(f"cannot write LUTs to {out}: {getattr(e, 'strerror', None) or e}") from None
+    try:
+        yield tmp
+        if not out.exists():
+            os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp's 0700 -> a plain mkdir's mode
+            os.replace(tmp, out)
+        else:
+            names = sorted(p.name for p in tmp.iterdir() if p.name != "lut.json")
+            for f in names + (["lut.json"] if (tmp / "lut.json").exists() else []):
+                os.replace(tmp / f, out / f)
+    except LutError:
+        raise
+    except OSError as e:
+        raise LutError(f"cannot write LUTs to {out}: {e.strerror or e}") from None
+    except Exception as e:  # ExrError and the like: already one line
+        raise LutError(f"cannot write LUTs to {out}: {e}") from None
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
 def export_luts(tables: PrecomputedAtmosphere, atm: Atmosphere | None, out_dir: str | Path, format: str = "exr",
                 rgb: bool = False) -> Path:
     """Write the tables of ``tables`` as float32 images and ``lut.json`` into ``out_dir`` (docs/luts.md).
@@ -200,29 +240,10 @@ def export_luts(tables: PrecomputedAtmosphere, atm: Atmosphere | None, out_dir: 
             raise LutError(f"table {name} has non-finite values in {bad}; nothing written")
     files = {name: f"{_FILES[name]}.{format}" for name in images}
     meta = _lut_json(tables, atm, format, rgb, files, m)
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        if out.exists() and not out.is_dir():
-            raise LutError(f"--out {out} exists and is not a directory")
-        tmp = make_temp_dir(out)  # named so that a killed run's is recognised and removed (skyfit.io.atomic)
-    except OSError as e:
-        raise LutError(f"cannot write LUTs to {out}: {e.strerror or e}") from None
-    try:
+    with lut_folder(out) as tmp:
         for name, ch in images.items():
             _write_image(tmp / files[name], ch, format, {"table": name, "skyfit_lut": LUT_VERSION})
         (tmp / "lut.json").write_text(json.dumps(meta, indent=2))
-        if not out.exists():
-            os.replace(tmp, out)
-        else:  # existing directory: replace file by file, lut.json last
-            for f in list(files.values()) + ["lut.json"]:
-                os.replace(tmp / f, out / f)
-    except OSError as e:
-        raise LutError(f"cannot write LUTs to {out}: {e.strerror or e}") from None
-    except Exception as e:  # ExrError and the like: already one line
-        raise LutError(f"cannot write LUTs to {out}: {e}") from None
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
     return out
 
 

@@ -19,9 +19,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +32,7 @@ from ..scattering.bruneton_tables import extinction_matrix3
 from ..scattering.hillaire import hillaire_lut, hillaire_sky_radiance
 from ..transmittance import make_integrator
 from .bruneton2017 import LAMBDAS_RGB_NM
-from .lut import LutError
+from .lut import LutError, lut_folder, rgb_matrix
 
 KM = 1000.0
 TRANSMITTANCE_SIZE = (256, 64)
@@ -250,7 +247,6 @@ def export_unreal(atm: Atmosphere, atm_rgb: Atmosphere, out_dir: str | Path, *, 
     if not zs or not all(0.0 <= z <= 180.0 for z in zs):
         raise LutError(f"sun zenith angles for the sky-view LUTs must be in [0, 180] deg, got {sun_zeniths}")
     params = unreal_parameters(atm_rgb)
-    from .lut import rgb_matrix
 
     sun_rgb = atm.solar_irradiance.detach().cpu().double().numpy() @ rgb_matrix(atm.wavelengths).numpy()  # lux per channel
     y = float(sun_rgb @ np.linalg.inv(_xyz_to_srgb())[1])
@@ -291,36 +287,11 @@ def export_unreal(atm: Atmosphere, atm_rgb: Atmosphere, out_dir: str | Path, *, 
         "bottom_radius_m": atm.bottom_radius, "top_radius_m": atm.top_radius,
     }
     out = Path(out_dir)
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        if out.exists() and not out.is_dir():
-            raise LutError(f"--out {out} exists and is not a directory")
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    except OSError as e:
-        raise LutError(f"cannot write LUTs to {out}: {e.strerror or e}") from None
-    names = list(images) + ["unreal.json", "lut.json"]
-    try:
+    with lut_folder(out) as tmp:
         for name, v in images.items():
             write_exr(tmp / name, {c: v[..., k] for k, c in enumerate("RGB")}, {"table": name, "layout": "unreal"})
         (tmp / "unreal.json").write_text(json.dumps(params, indent=2))
         (tmp / "lut.json").write_text(json.dumps(meta, indent=2))
-        if not out.exists():
-            mask = os.umask(0)
-            os.umask(mask)
-            os.chmod(tmp, 0o777 & ~mask)
-            os.replace(tmp, out)
-        else:
-            for f in names:
-                os.replace(tmp / f, out / f)
-    except OSError as e:
-        raise LutError(f"cannot write LUTs to {out}: {e.strerror or e}") from None
-    except LutError:
-        raise
-    except Exception as e:
-        raise LutError(f"cannot write LUTs to {out}: {e}") from None
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
     return out
 
 

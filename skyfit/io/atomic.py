@@ -146,7 +146,7 @@ def make_temp_dir(path: str | Path) -> Path:
         raise OutputError(f"cannot write {path}: {e.strerror or e}") from None
 
 
-def _umask() -> int:
+def current_umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
@@ -171,7 +171,7 @@ def atomic_path(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
         raise OutputError(f"cannot write {path}: {e.strerror or e}") from None
     try:
         yield Path(tmp)
-        os.chmod(tmp, 0o666 & ~_umask())
+        os.chmod(tmp, 0o666 & ~current_umask())
         os.replace(tmp, path)
     except OSError as e:
         if e.filename in (tmp, str(tmp)) or e.filename2 in (tmp, str(tmp), str(path)):
