@@ -285,14 +285,8 @@ def _threads(args) -> None:
 def cmd_fit(args) -> int:
     _threads(args)
     cfg, source = read_config(args.config)
-    overrides = {
-        "free": args.free, "per_observation": args.per_observation, "integrator": args.integrator, "orders": args.orders,
-        "multiple": args.multiple, "view_samples": args.view_samples, "rule": args.rule, "loss": args.loss, "starts": args.starts,
-        "max_iter": args.max_iter, "adam_steps": args.adam_steps, "seed": args.seed, "wavelengths": args.wavelengths,
-        "min_elevation_deg": args.min_elevation, "sun_disc_deg": args.sun_mask, "max_samples": args.max_samples,
-        "sigma_relative": args.sigma_relative, "accuracy": args.accuracy,
-        "select_sigma": args.select_sigma, "select_heldout": args.heldout, "dtype": args.dtype,
-    }
+    overrides = {**_fit_overrides(args), "select_sigma": args.select_sigma, "select_heldout": args.heldout,
+                 "dtype": args.dtype}
     try:
         res = run_fit(args.data, cfg, args.out, overrides=overrides, config_source=source, kider_site=_kider_site(args),
                       plots=not args.no_plots, progress=_progress(args), laplace=args.laplace, select=args.select,
@@ -368,34 +362,54 @@ def cmd_sample(args) -> int:
     return 0
 
 
+FIT_FLAGS = {
+    "free": "free", "per_observation": "per_observation", "integrator": "integrator", "orders": "orders",
+    "multiple": "multiple", "view_samples": "view_samples", "rule": "rule", "loss": "loss", "starts": "starts",
+    "max_iter": "max_iter", "adam_steps": "adam_steps", "seed": "seed", "wavelengths": "wavelengths",
+    "min_elevation": "min_elevation_deg", "sun_mask": "sun_disc_deg", "max_samples": "max_samples",
+    "sigma_relative": "sigma_relative", "accuracy": "accuracy",
+}
+"""The per-fit flags of ``fit`` and ``batch`` (argparse dest -> FitSettings field)."""
+
+
+def _fit_overrides(args) -> dict:
+    """The per-fit flags as FitSettings overrides (None: not given)."""
+    return {field: getattr(args, dest) for dest, field in FIT_FLAGS.items()}
+
+
+def _add_fit_options(p, D) -> None:
+    """The per-fit flags shared by ``fit`` and ``batch``; their help states ``D``'s (FitSettings') defaults."""
+    p.add_argument("--free", help="comma list of fitted parameters (docs/fitting.md), e.g. mie_beta_550,mie_g,exposure")
+    p.add_argument("--per-observation", help="comma list of nuisance parameters with one value per observation")
+    p.add_argument("--integrator", help=f"NAME[:key=value,...] (default {D.integrator})")
+    p.add_argument("--orders", type=int, help="scattering orders (1 = single scattering, the default; >= 2 adds multiple scattering)")
+    p.add_argument("--multiple", choices=("hillaire", "bruneton"),
+                   help="with --orders >= 2: Hillaire 2020's LUT (default, rebuilt per evaluation) or Bruneton's tables (reduced sizes)")
+    p.add_argument("--view-samples", type=int, help=f"samples of the view-ray integral (default {D.view_samples})")
+    p.add_argument("--rule", help=f"outer quadrature rule (default {D.rule})")
+    p.add_argument("--accuracy", help="auto (model error <= 1/3 of the data's median relative sigma), de=X or rel=X: "
+                   "the cheapest measured renderer setting meeting it replaces --integrator/--view-samples/--rule")
+    p.add_argument("--loss", help=f"squared, log, relative, huber, cauchy [:residual=...,delta=...] (default {D.loss})")
+    p.add_argument("--starts", type=int, help=f"multi-start points (default {D.starts})")
+    p.add_argument("--max-iter", type=int, help=f"L-BFGS iterations per start (default {D.max_iter})")
+    p.add_argument("--adam-steps", type=int, help=f"Adam warm-start steps per start (default {D.adam_steps})")
+    p.add_argument("--seed", type=int, help=f"seed of the multi-start spread (default {D.seed})")
+    p.add_argument("--wavelengths", help="model grid for RGB data, START:STOP:STEP or a list [nm]")
+    p.add_argument("--min-elevation", type=float, help=f"horizon mask: lowest elevation used [deg] (default {D.min_elevation_deg:g})")
+    p.add_argument("--sun-mask", type=float, help=f"images: radius of the disc around the sun left out [deg] (default {D.sun_disc_deg:g})")
+    p.add_argument("--max-samples", type=int, help="images: use every k-th pixel so that at most this many remain")
+    p.add_argument("--sigma-relative", type=float, help=f"images: relative noise when the header has none (default {D.sigma_relative:g})")
+    p.add_argument("--location", help="Kider data: LAT,LON[,ELEV] (default: the Kider site)")
+    p.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
+
+
 def _add_fit_parsers(sub) -> None:
     D = FitSettings()  # the help states the defaults of the one definition
     f = sub.add_parser("fit", help="fit an atmosphere to fisheye EXR images or Kider captures (docs/fitting.md)")
     f.add_argument("data", nargs="+", help="an .exr fisheye, a Kider capture folder, or a folder of either (several: joint fit)")
     f.add_argument("--config", required=True, help="atmosphere config YAML with an optional fit: section (or a shipped name)")
     f.add_argument("--out", required=True, help="RESULT.json (plots are written beside it)")
-    f.add_argument("--free", help="comma list of fitted parameters (docs/fitting.md), e.g. mie_beta_550,mie_g,exposure")
-    f.add_argument("--per-observation", help="comma list of nuisance parameters with one value per observation")
-    f.add_argument("--integrator", help=f"NAME[:key=value,...] (default {D.integrator})")
-    f.add_argument("--orders", type=int, help="scattering orders (1 = single scattering, the default; >= 2 adds multiple scattering)")
-    f.add_argument("--multiple", choices=("hillaire", "bruneton"),
-                   help="with --orders >= 2: Hillaire 2020's LUT (default, rebuilt per evaluation) or Bruneton's tables (reduced sizes)")
-    f.add_argument("--view-samples", type=int, help=f"samples of the view-ray integral (default {D.view_samples})")
-    f.add_argument("--rule", help=f"outer quadrature rule (default {D.rule})")
-    f.add_argument("--accuracy", help="auto (model error <= 1/3 of the data's median relative sigma), de=X or rel=X: "
-                   "the cheapest measured renderer setting meeting it replaces --integrator/--view-samples/--rule")
-    f.add_argument("--loss", help=f"squared, log, relative, huber, cauchy [:residual=...,delta=...] (default {D.loss})")
-    f.add_argument("--starts", type=int, help=f"multi-start points (default {D.starts})")
-    f.add_argument("--max-iter", type=int, help=f"L-BFGS iterations per start (default {D.max_iter})")
-    f.add_argument("--adam-steps", type=int, help=f"Adam warm-start steps per start (default {D.adam_steps})")
-    f.add_argument("--seed", type=int, help=f"seed of the multi-start spread (default {D.seed})")
-    f.add_argument("--wavelengths", help="model grid for RGB data, START:STOP:STEP or a list [nm]")
-    f.add_argument("--min-elevation", type=float, help=f"horizon mask: lowest elevation used [deg] (default {D.min_elevation_deg:g})")
-    f.add_argument("--sun-mask", type=float, help=f"images: radius of the disc around the sun left out [deg] (default {D.sun_disc_deg:g})")
-    f.add_argument("--max-samples", type=int, help="images: use every k-th pixel so that at most this many remain")
-    f.add_argument("--sigma-relative", type=float, help=f"images: relative noise when the header has none (default {D.sigma_relative:g})")
-    f.add_argument("--location", help="Kider data: LAT,LON[,ELEV] (default: the Kider site)")
-    f.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
+    _add_fit_options(f, D)
     f.add_argument("--no-plots", action="store_true", help="do not write PNG plots")
     f.add_argument("--laplace", action="store_true", help="add a Hessian (Laplace) covariance: sigma and correlation per parameter")
     f.add_argument("--select", action="store_true",
@@ -568,19 +582,14 @@ def cmd_batch(args) -> int:
     """``skyfit batch``: a thin layer over :func:`skyfit.batch.batch` (CONTRACT.md, "Many skies"; docs/batch.md)."""
     if args.scheduler and (args.workers is not None or args.threads_per_worker is not None):
         raise UserError("--workers and --threads-per-worker size the local cluster; a --scheduler's cluster has its own workers")
-    overrides = {
-        "per_observation": args.per_observation, "integrator": args.integrator, "orders": args.orders,
-        "multiple": args.multiple, "view_samples": args.view_samples, "rule": args.rule, "loss": args.loss, "starts": args.starts,
-        "max_iter": args.max_iter, "adam_steps": args.adam_steps, "seed": args.seed, "wavelengths": args.wavelengths,
-        "min_elevation_deg": args.min_elevation, "sun_disc_deg": args.sun_mask, "max_samples": args.max_samples,
-        "sigma_relative": args.sigma_relative, "accuracy": args.accuracy,
-    }
+    overrides = _fit_overrides(args)
+    free = overrides.pop("free")
     # a local cluster runs on this machine: its --device is checked here; a scheduler's workers resolve it themselves
     device = args.device if args.scheduler else _check_device(args.device)
     say = (lambda line: print(line, file=sys.stderr)) if args.json else print
     df = run_batch(args.data, args.config, out=args.out, scheduler=args.scheduler, workers=args.workers,
                    threads_per_worker=args.threads_per_worker or 1, resume=args.resume, laplace=args.laplace,
-                   progress=_progress(args), retries=args.retries, free=args.free, kider_site=_kider_site(args),
+                   progress=_progress(args), retries=args.retries, free=free, kider_site=_kider_site(args),
                    plot=not args.no_plots, warm_start=args.warm_start, device=device,
                    force=getattr(args, "force", False), log=say,
                    **{k: v for k, v in overrides.items() if v is not None})
@@ -612,26 +621,7 @@ def _add_batch_parser(sub) -> None:
     b.add_argument("--laplace", action="store_true", help="Laplace sigma per free parameter (sigma_<name> columns, bands in timeseries.png)")
     b.add_argument("--warm-start", choices=("previous",),
                    help="previous: start each fit from the item before it (in order; contiguous chains, one per worker thread)")
-    b.add_argument("--free", help="comma list of fitted parameters (docs/fitting.md)")
-    b.add_argument("--per-observation", help="comma list of nuisance parameters with one value per observation")
-    b.add_argument("--integrator", help=f"NAME[:key=value,...] (default {D.integrator})")
-    b.add_argument("--orders", type=int, help="scattering orders (1 = single scattering, the default)")
-    b.add_argument("--multiple", choices=("hillaire", "bruneton"), help="with --orders >= 2: the multiple-scattering model")
-    b.add_argument("--view-samples", type=int, help=f"samples of the view-ray integral (default {D.view_samples})")
-    b.add_argument("--rule", help=f"outer quadrature rule (default {D.rule})")
-    b.add_argument("--accuracy", help="auto, de=X or rel=X: the cheapest measured renderer setting meeting it")
-    b.add_argument("--loss", help=f"squared, log, relative, huber, cauchy [:residual=...,delta=...] (default {D.loss})")
-    b.add_argument("--starts", type=int, help=f"multi-start points (default {D.starts})")
-    b.add_argument("--max-iter", type=int, help=f"L-BFGS iterations per start (default {D.max_iter})")
-    b.add_argument("--adam-steps", type=int, help=f"Adam warm-start steps per start (default {D.adam_steps})")
-    b.add_argument("--seed", type=int, help=f"seed of the multi-start spread (default {D.seed})")
-    b.add_argument("--wavelengths", help="model grid for RGB data, START:STOP:STEP or a list [nm]")
-    b.add_argument("--min-elevation", type=float, help=f"horizon mask: lowest elevation used [deg] (default {D.min_elevation_deg:g})")
-    b.add_argument("--sun-mask", type=float, help=f"images: radius of the disc around the sun left out [deg] (default {D.sun_disc_deg:g})")
-    b.add_argument("--max-samples", type=int, help="images: use every k-th pixel so that at most this many remain")
-    b.add_argument("--sigma-relative", type=float, help=f"images: relative noise when the header has none (default {D.sigma_relative:g})")
-    b.add_argument("--location", help="Kider data: LAT,LON[,ELEV] (default: the Kider site)")
-    b.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
+    _add_fit_options(b, D)
     b.add_argument("--no-plots", action="store_true", help="do not write timeseries.png")
     b.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (resolved on each worker); default cpu")
     b.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar over the items (default: on a terminal)")
@@ -847,8 +837,8 @@ def _export_lut_wavelengths(args) -> int:
 def _before_work(parser: argparse.ArgumentParser, args) -> None:
     """Every check that needs no data: flag ranges, output paths, and the resource estimates that the
     flags alone determine (export-lut, envmap; render checks after ``--accuracy`` settles its flags)."""
-    if getattr(args, "device", None) is not None:  # a flag alone decides it: before anything is read
-        _check_device(args.device)
+    if getattr(args, "device", None) is not None and not getattr(args, "scheduler", None):
+        _check_device(args.device)  # a flag alone decides it: before anything is read (a scheduler's workers resolve theirs)
     check_flags(parser, args)
     check_specs(args)
     check_outputs(args)
