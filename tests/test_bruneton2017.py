@@ -10,13 +10,12 @@ import json
 import math
 import shutil
 import subprocess
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from skyfit.atmosphere import load_atmosphere, load_yaml
+from skyfit.atmosphere import load_atmosphere
 from skyfit.export import bruneton2017 as b17
 from skyfit.export.lut import LutError, rgb_matrix
 from skyfit.export.shader_reference import Bruneton2017Shader, band_table, relative_errors, texture2d, view_grid
@@ -25,7 +24,7 @@ from skyfit.scattering.bruneton_tables import TableSizes, mu_s_from_unit, scatte
 from skyfit.scattering.multiple import Quadrature, precompute
 from skyfit.scattering.phase import rayleigh_phase
 
-from _cli import run
+from _cli import minimal_result, run
 
 SIZES = TableSizes(scattering_r=8, scattering_mu=32, scattering_mu_s=8, scattering_nu=4, transmittance_mu=64,
                    transmittance_r=16, irradiance_mu_s=16, irradiance_r=8)
@@ -188,19 +187,11 @@ def test_glsl_compiles(setup, tmp_path):
         assert r.returncode == 0, r.stdout + r.stderr
 
 
-def _result(path: Path, version: int = 1) -> Path:
-    cfg = load_yaml(Path(__file__).resolve().parents[1] / "skyfit" / "configs" / "earth.yaml")
-    res = {"skyfit_result": version, "parameters": {"mie_g": 0.7}, "free": ["mie_g"], "integrator": {"name": "taylor"},
-           "config": cfg, "model": {"wavelengths_nm": [450.0, 550.0, 650.0], "orders": 1}}
-    path.write_text(json.dumps(res))
-    return path
-
-
 FAST = ["--orders", 1, "--table-sizes", "4,8,4,2"]
 
 
 def test_cli_bruneton2017(tmp_path, capsys):
-    res = _result(tmp_path / "RESULT.json")
+    res = minimal_result(tmp_path / "RESULT.json")
     out = tmp_path / "luts"
     rc, o, e = run(["export-lut", res, "--out", out, "--layout", "bruneton2017", "--precision", "f16", "--json", *FAST], capsys)
     assert rc == 0, e
@@ -222,12 +213,12 @@ def _fails(argv, capsys, match, tmp_path):
 
 
 def test_cli_bruneton2017_bad_input(tmp_path, capsys):
-    res = _result(tmp_path / "RESULT.json")
+    res = minimal_result(tmp_path / "RESULT.json")
     out = tmp_path / "o"
     _fails(["export-lut", res, "--out", out, "--layout", "unreal4", *FAST], capsys, "invalid choice", tmp_path)
     _fails(["export-lut", res, "--out", out, "--layout", "bruneton2017", "--precision", "f8", *FAST], capsys,
            "invalid choice", tmp_path)
     _fails(["export-lut", res, "--out", out, "--precision", "f16", *FAST], capsys, "--layout bruneton2017", tmp_path)
     _fails(["export-lut", res, "--out", out, "--layout", "bruneton2017", "--format", "npz", *FAST], capsys, "EXR", tmp_path)
-    _fails(["export-lut", _result(tmp_path / "v9.json", 9), "--out", out, "--layout", "bruneton2017", *FAST], capsys,
+    _fails(["export-lut", minimal_result(tmp_path / "v9.json", version=9), "--out", out, "--layout", "bruneton2017", *FAST], capsys,
            "version 9", tmp_path)

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from skyfit.atmosphere import load_atmosphere, load_yaml
+from _cli import minimal_result
+from skyfit.atmosphere import load_atmosphere
 from skyfit.cli import main
 from skyfit.export import LutError, export_luts, load_luts
 from skyfit.export.lut import pack_scattering, unpack_scattering
@@ -160,13 +161,6 @@ def test_exported_single_scattering_matches_direct_render(exported, sun_zenith):
 
 
 # -- CLI -----------------------------------------------------------------------
-def _result(path: Path, mie_g: float = 0.7) -> Path:
-    """A minimal RESULT.json (the keys skyfit.fit.run.read_result requires) with one fitted parameter."""
-    cfg = load_yaml(Path(__file__).resolve().parents[1] / "skyfit" / "configs" / "earth.yaml")
-    res = {"skyfit_result": 1, "parameters": {"mie_g": mie_g}, "free": ["mie_g"], "integrator": {"name": "taylor"},
-           "config": cfg, "model": {"wavelengths_nm": [450.0, 550.0, 650.0], "orders": 1}}
-    path.write_text(json.dumps(res))
-    return path
 
 
 CLI_FAST = ["--orders", "1", "--table-sizes", "4,8,4,2"]
@@ -174,7 +168,7 @@ CLI_FAST = ["--orders", "1", "--table-sizes", "4,8,4,2"]
 
 @pytest.mark.parametrize("fmt", ["exr", "npz"])
 def test_cli_export_lut(tmp_path, capsys, fmt):
-    res = _result(tmp_path / "RESULT.json", mie_g=0.7)
+    res = minimal_result(tmp_path / "RESULT.json", mie_g=0.7)
     out = tmp_path / "luts"
     assert main(["export-lut", str(res), "--out", str(out), "--format", fmt, "--json", *CLI_FAST]) == 0
     info = json.loads(capsys.readouterr().out)
@@ -196,7 +190,7 @@ def _fails(argv, capsys, match: str, tmp_path: Path) -> None:
 
 
 def test_cli_export_lut_errors(tmp_path, capsys):
-    res = _result(tmp_path / "RESULT.json")
+    res = minimal_result(tmp_path / "RESULT.json")
     _fails(["export-lut", str(tmp_path / "missing.json"), "--out", str(tmp_path / "o"), *CLI_FAST], capsys, "not found", tmp_path)
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")

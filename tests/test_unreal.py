@@ -3,13 +3,12 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from skyfit.atmosphere import load_atmosphere, load_yaml
+from skyfit.atmosphere import load_atmosphere
 from skyfit.export.shader_reference import view_grid
 from skyfit.export.unreal import (atmosphere_from_unreal, skyview_directions, transmittance_lut, unreal_parameters,
                                   unreal_render_errors)
@@ -17,7 +16,7 @@ from skyfit.io import read_exr
 from skyfit.scattering.bruneton_tables import TableSizes
 from skyfit.scattering.multiple import Quadrature, precompute
 
-from _cli import run
+from _cli import minimal_result, run
 
 RGB = [680.0, 550.0, 440.0]
 
@@ -124,17 +123,9 @@ def test_render_from_the_parameters_against_skyfit(earth):
     assert float(np.median(e["mapping"])) < 1.5 * 0.0039 and float(e["mapping"].max()) < 1.5 * 0.092
 
 
-def _result(path: Path, version: int = 1) -> Path:
-    cfg = load_yaml(Path(__file__).resolve().parents[1] / "skyfit" / "configs" / "earth.yaml")
-    res = {"skyfit_result": version, "parameters": {"mie_g": 0.7}, "free": ["mie_g"], "integrator": {"name": "taylor"},
-           "config": cfg, "model": {"wavelengths_nm": [450.0, 550.0, 650.0], "orders": 1}}
-    path.write_text(json.dumps(res))
-    return path
-
-
 def test_cli_unreal(tmp_path, capsys):
     out = tmp_path / "ue"
-    rc, o, e = run(["export-lut", _result(tmp_path / "RESULT.json"), "--out", out, "--layout", "unreal",
+    rc, o, e = run(["export-lut", minimal_result(tmp_path / "RESULT.json"), "--out", out, "--layout", "unreal",
                     "--sun-zenith", "30", "--json"], capsys)
     assert rc == 0, e
     params = json.loads((out / "unreal.json").read_text())
@@ -149,7 +140,7 @@ def test_cli_unreal(tmp_path, capsys):
 
 
 def test_cli_unreal_bad_input(tmp_path, capsys):
-    res = _result(tmp_path / "RESULT.json")
+    res = minimal_result(tmp_path / "RESULT.json")
     for argv, match in (
         (["--layout", "unreal", "--format", "npz"], "--format npz"),
         (["--layout", "unreal", "--precision", "f16"], "--precision applies"),
