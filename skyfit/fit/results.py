@@ -21,7 +21,7 @@ from .laplace import laplace_summary
 from .model import FitProblem, SkyModel
 from .optimise import OptimiseResult
 from .parameters import PARAMETERS, FitError, Parameterisation
-from .problem import DTYPES, RUN_SECTIONS, base_atmosphere
+from .problem import RUN_SECTIONS, base_atmosphere
 from .report import dumps, plot_all, write_text_atomic
 
 RESULT_VERSION = 1
@@ -176,11 +176,6 @@ def fitted_atmosphere_values(res: dict) -> dict:
     """The atmosphere parameters a result moved away from its config: those fitted or set in ``fit.initial``."""
     fitted = set(res.get("free", [])) | set((res.get("settings") or {}).get("initial", {}) or {})
     return {n: v for n, v in res["parameters"].items() if not PARAMETERS[n].nuisance and n in fitted}
-
-
-def result_dtype(res: dict) -> torch.dtype:
-    """The dtype a result was fitted in (float64 when it does not say)."""
-    return DTYPES.get(str((res.get("model") or {}).get("dtype", "float64")), torch.float64)
 
 
 def atmosphere_from_result(res: dict, wavelengths_nm=None, dtype=torch.float64, device="cpu") -> Atmosphere:
