@@ -27,7 +27,7 @@ from .atmosphere.wavelengths import DEFAULT_WAVELENGTHS, parse_wavelengths
 from .camera import PROJECTIONS, FisheyeCamera, parse_location, parse_time, render_fisheye, sun_position
 from .export import FORMATS, bruneton2017, export_luts
 from .export.unreal import export_unreal
-from .fit.problem import FitSettings
+from .fit.problem import DTYPES, FitSettings
 from .fit.report import dumps
 from .fit.results import atmosphere_from_result, read_result
 from .fit.run import run_evaluate, run_fit
@@ -52,10 +52,6 @@ EXIT_USAGE = 2
 
 class UserError(ValueError):
     """A mistake in the command line or its inputs."""
-
-
-def _dtype(name: str):
-    return {"float32": torch.float32, "float64": torch.float64}[name]
 
 
 def _check_device(device: str) -> str:
@@ -209,7 +205,7 @@ def cmd_render(args) -> int:
         raise UserError(f"--integrator {args.integrator}: {e}") from None
     device = _check_device(args.device)
     check_resources(args, len(lam), integrator)
-    atm = load_atmosphere(args.config, lam, dtype=_dtype(args.dtype), device=device, sun_distance_au=sun_info.get("distance_au"))
+    atm = load_atmosphere(args.config, lam, dtype=DTYPES[args.dtype], device=device, sun_distance_au=sun_info.get("distance_au"))
     t0 = time.perf_counter()
     with torch.no_grad():
         img = _render_image(args, atm, integrator, sun_zenith, sun_azimuth, args.size, args.projection)
