@@ -183,7 +183,7 @@ def _radiance_section(ss_errors: dict, settings: dict, ref_grid, views: int) -> 
         "## Single-scattering radiance against scipy",
         "",
         "Max relative error of `single_scattering` (each integrator inside, Gauss-Legendre with "
-        f"{views} nodes along the view ray so that the outer integral is converged, no sun disc, no ozone) against the "
+        f"{views} nodes along the view ray so that the outer integral is converged, no sun disk, no ozone) against the "
         "independent float64 scipy reference of `tests/test_single_scattering_reference.py` (adaptive quad for every "
         "optical depth, quad_vec over the view ray with break points at the shadow edge). Geometry: altitudes "
         f"{', '.join(a for a, _ in ref_grid.altitudes)}; sun zenith {', '.join(f'{z:g}' for z in ref_grid.sun_zenith_deg)} deg; "
@@ -247,7 +247,7 @@ def _report(args, grid, settings, methods, radiance, columns, cpu, cpu_total) ->
         "Every method is run on every atmosphere, and for each atmosphere on every geometry, in float64 and float32:",
         "",
         f"- observer altitude: {', '.join(a for a, _ in grid.altitudes)} (Earth: bottom 6360 km, top 6420 km; space = 120 km up);",
-        f"- sun zenith: {', '.join(f'{z:g}' for z in grid.sun_zenith_deg)} deg (90.27: the disc, radius 0.268 deg, just below the ground's horizon and partly seen from a few metres up);",
+        f"- sun zenith: {', '.join(f'{z:g}' for z in grid.sun_zenith_deg)} deg (90.27: the disk, radius 0.268 deg, just below the ground's horizon and partly seen from a few metres up);",
         "- view cosine mu: 1, +-1e-3, +-1e-6, 0, -1 and, for raised observers, the ground's horizon mu_h and mu_h +- 1e-6; "
         "each towards and away from the sun's azimuth, plus the view straight at the sun (scattering angle 0, nu = 1);",
         f"- scale height H (both layers): {', '.join(f'{h:g}' for h in grid.scale_heights)} m;",
@@ -257,7 +257,7 @@ def _report(args, grid, settings, methods, radiance, columns, cpu, cpu_total) ->
                 f"{len(grid.scale_heights)} + {len(grid.betas)} + {len(grid.mie_g)} atmospheres."),
         "",
         f"Wavelengths {S.WAVELENGTHS_NM[0]:g} and {S.WAVELENGTHS_NM[1]:g} nm. Single scattering: 16-node Gauss-Legendre along the view ray, "
-        "sun disc and Lambertian ground included. Gradients: one backward pass per (atmosphere, altitude, sun zenith) group of "
+        "sun disk and Lambertian ground included. Gradients: one backward pass per (atmosphere, altitude, sun zenith) group of "
         "rays, of the summed radiance w.r.t. beta_R, beta_M^s, beta_M^e (per wavelength), H_R, H_M, g and the ground albedo.",
         "",
         "## Non-finite values and gradients",

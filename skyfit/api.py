@@ -336,6 +336,64 @@ def fit(observations, config: str | Path | dict | Atmosphere = "earth", *, free:
     return FitResult(result, problem, res.x)
 
 
+@dataclasses.dataclass(repr=False)
+class PhotoResult(FitResult):
+    """A photo fit (:func:`fit_photo`): a :class:`FitResult` with the photo's camera, sun and aerosol.
+
+    Attributes (besides FitResult's):
+        camera: the fitted :class:`~skyfit.camera.FisheyeCamera` (projection, centre, radius, heading, tilt).
+        photo_fit: the whole :class:`skyfit.fit.photo.PhotoFit` (scene, masks, blocks, model image).
+    """
+
+    camera: FisheyeCamera | None = None
+    photo_fit: object | None = None
+
+    @property
+    def aerosol(self) -> dict:
+        """aod_550, angstrom_alpha, g, rayleigh_scale and their Laplace sigma."""
+        return self.result["aerosol"]
+
+    @property
+    def sun(self) -> dict:
+        """model_px, detected_px, separation_deg (CONTRACT.md)."""
+        return self.result["sun"]
+
+    def save_report(self, path: str | Path) -> Path:
+        """RESULT.png: photo, model, residual and mask side by side."""
+        from .fit.photo import report_png
+
+        return report_png(self.photo_fit, path)
+
+
+def fit_photo(photo, *, time: str, location, config: str | Path | dict = "earth", camera=None, mask=None,
+              exposures: Sequence[float] | None = None, linear: bool = False, response: str | None = None,
+              free: Sequence[str] | None = None, laplace: bool = True, progress: bool = False, device: str = "cpu",
+              **settings) -> PhotoResult:
+    """Fit the atmosphere to a sky photo from its time and place alone; nothing is written.
+
+    Args:
+        photo: a JPEG/PNG/TIFF, camera RAW, Radiance .hdr or EXR path, a folder of one scene's bracketed
+            exposures, or a :class:`skyfit.io.photo.LinearPhoto` in memory.
+        time: ISO 8601 with its UTC offset (or a zone name).
+        location: "LAT,LON[,ELEV]" or (lat, lon[, elev]). [deg, deg, m]
+        config: the atmosphere to start from (a shipped name, a YAML path or a dict).
+        camera: a FisheyeCamera, a CAMERA.yaml path or its dict; None: estimated from the image and the sun.
+        mask: (H, W) bool, True = ignore, added to the automatic masks.
+        exposures, linear, response: how to read the photo (:func:`skyfit.io.photo.read_photo`).
+        free: the fitted parameters (default :data:`skyfit.fit.photo.PHOTO_FREE`).
+        laplace: Laplace sigma of the fitted values (``result.aerosol["sigma"]``).
+        **settings: any :class:`skyfit.fit.problem.FitSettings` field.
+    """
+    from .fit.photo import fit_photo as _fit_photo
+
+    cfg, _ = read_config(config) if not isinstance(config, dict) else (config, "dict")
+    overrides = {**settings, **({"free": list(free)} if free is not None else {})}
+    pf = _fit_photo(photo, time=time, location=location, config=cfg, camera=camera, mask=mask, exposures=exposures,
+                    linear=linear, response=response, overrides=overrides, laplace=laplace, progress=progress,
+                    device=resolve_device(device))
+    return PhotoResult(pf.result, pf.problem, pf.x, camera=pf.camera, photo_fit=pf)
+
+
 def _config_of(config) -> tuple[dict, str]:
     """A config dict for ``fit``: an Atmosphere is accepted when it is exactly its config's atmosphere."""
     if not isinstance(config, Atmosphere):

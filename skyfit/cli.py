@@ -205,6 +205,10 @@ def cmd_render(args) -> int:
         raise UserError(f"--integrator {args.integrator}: {e}") from None
     device = _check_device(args.device)
     check_resources(args, len(lam), integrator)
+    if args.preview:
+        from .export.envmap import preview_path
+
+        check_writable(preview_path(out), what="--preview")  # before the render; creates nothing
     atm = load_atmosphere(args.config, lam, dtype=DTYPES[args.dtype], device=device, sun_distance_au=sun_info.get("distance_au"))
     t0 = time.perf_counter()
     with torch.no_grad():
@@ -217,6 +221,8 @@ def cmd_render(args) -> int:
         raise UserError(f"render of {args.config} produced non-finite values in channel(s) {bad}; nothing written")
     write_exr(out, chans, meta)
     info = {"out": str(out), "seconds": round(elapsed, 4), "size": args.size, "channels": sorted(chans)}
+    if args.preview:
+        info["preview"] = str(_write_render_preview(out, chans, img))
     if auto is not None:
         info["accuracy"] = auto.summary()
     text = f"wrote {out} ({args.size}x{args.size}, {len(chans)} channels) in {elapsed:.2f} s"
@@ -224,6 +230,18 @@ def cmd_render(args) -> int:
         text += f"; --accuracy {auto.tolerance}: {describe(auto.setting)} (measured {auto.predicted_error:.3g})"
     print(json.dumps(info) if args.json else text)
     return 0
+
+
+def _write_render_preview(out: Path, chans: dict, img) -> Path:
+    """``render --preview``: the fisheye as an 8-bit sRGB PNG beside ``out`` (atomic), exposed on the sky's
+    90th percentile; pixels outside the image circle black."""
+    from .export.envmap import preview_path, write_preview
+
+    rgb = np.stack([chans["R"], chans["G"], chans["B"]], -1).astype(np.float64)
+    valid = img.valid.detach().cpu().numpy().astype(bool)
+    y = rgb.mean(-1)[valid]
+    ref = float(np.percentile(y[y > 0], 90)) if np.any(y > 0) else 1.0
+    return write_preview(preview_path(out), np.where(valid[..., None], rgb, 0.0), exposure=1.0 / max(ref, 1e-12))
 
 
 def _apply_accuracy(args, sun_zenith: float):
@@ -278,8 +296,72 @@ def _threads(args) -> None:
         torch.set_num_threads(args.threads)
 
 
+def _photo_input(data) -> bool:
+    """True when DATA is one photo or bracket folder (not an EXR with skyfit's header, not Kider captures)."""
+    from .io.photo import is_photo_path
+
+    return len(data) == 1 and is_photo_path(data[0])
+
+
+def _exposures(text: str | None) -> list[float] | None:
+    if text is None:
+        return None
+    try:
+        vals = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise UserError(f"--exposures must be a comma list of seconds, got {text!r}") from None
+    if not vals or not all(v > 0 and math.isfinite(v) for v in vals):
+        raise UserError(f"--exposures must be positive finite seconds, got {text!r}")
+    return vals
+
+
+def cmd_fit_photo(args) -> int:
+    from .fit.photo import run_photo_fit
+
+    if args.time is None or args.location is None:
+        raise UserError(f"photo {args.data[0]}: give --time (ISO 8601 with its UTC offset) and --location LAT,LON[,ELEV]")
+    if args.select:
+        raise UserError("--select applies to EXR and Kider data, not photos")
+    cfg, source = read_config(args.config or "earth")
+    overrides = {k: v for k, v in {**_fit_overrides(args), "dtype": args.dtype}.items() if v is not None}
+    res = run_photo_fit(args.data[0], cfg, args.out, time=args.time, location=args.location, camera=args.camera,
+                        mask=args.mask, exposures=_exposures(args.exposures), linear=args.linear, response=args.response,
+                        overrides=overrides, plots=not args.no_plots, progress=_progress(args), laplace=True,
+                        device=_check_device(args.device))
+    a, sun, px = res["aerosol"], res["sun"], res["pixels"]
+    summary = {"out": str(args.out), "aerosol": a, "camera": {k: res["camera"][k] for k in
+               ("projection", "cx", "cy", "radius_px", "up_azimuth_deg", "tilt_deg")}, "sun": sun,
+               "rmse_rel": res["metrics"]["rmse_rel"], "pixels": px, "notes": res["notes"],
+               "seconds": round(res["seconds"], 3), "converged": res["convergence"]["converged"]}
+    if args.json:
+        print(dumps(summary, indent=None))
+    else:
+        sig = a["sigma"]
+        for k in ("aod_550", "angstrom_alpha", "g"):
+            print(f"{k:16s} {a[k]:.4g}" + (f" +- {sig[k]:.2g}" if sig.get(k) is not None else ""))
+        cam = summary["camera"]
+        print(f"camera: {cam['projection']}, centre ({cam['cx']:.1f}, {cam['cy']:.1f}) px, radius {cam['radius_px']:.1f} px, "
+              f"up azimuth {cam['up_azimuth_deg']:.2f} deg, tilt {cam['tilt_deg'][0]:.2f}/{cam['tilt_deg'][1]:.2f} deg")
+        if sun["detected_px"] is not None:
+            print(f"sun: detected at ({sun['detected_px'][0]:.1f}, {sun['detected_px'][1]:.1f}) px, the fitted camera puts it "
+                  f"at ({sun['model_px'][0]:.1f}, {sun['model_px'][1]:.1f}) px: {sun['separation_deg']:.2f} deg apart")
+        for n in res["notes"]:
+            print(f"note: {n}")
+        print(f"relative rms {res['metrics']['rmse_rel']:.4f} over {px['used']} px ({px['masked']} masked, "
+              f"{px['censored']} censored), {res['seconds']:.1f} s")
+        print(f"wrote {args.out}")
+    return 0
+
+
 def cmd_fit(args) -> int:
     _threads(args)
+    if _photo_input(args.data):
+        return cmd_fit_photo(args)
+    for flag in ("time", "camera", "mask", "exposures", "response"):
+        if getattr(args, flag) is not None:
+            raise UserError(f"--{flag} applies to a photo; {args.data[0]} is not one")
+    if args.config is None:
+        raise UserError("--config is required for EXR and Kider data")
     cfg, source = read_config(args.config)
     overrides = {**_fit_overrides(args), "select_sigma": args.select_sigma, "select_heldout": args.heldout,
                  "dtype": args.dtype}
@@ -315,6 +397,20 @@ def cmd_fit(args) -> int:
 
 def cmd_evaluate(args) -> int:
     _threads(args)
+    if _photo_input(args.data):
+        from .fit.photo import evaluate_photo
+
+        if args.time is None or args.location is None:
+            raise UserError(f"photo {args.data[0]}: give --time (ISO 8601 with its UTC offset) and --location LAT,LON[,ELEV]")
+        refit = ["exposure"] + (["sun_azimuth_offset", "gain_red", "gain_blue"] if args.refit_nuisance else [])
+        res = evaluate_photo(read_result(args.result), args.data[0], time=args.time, location=args.location, refit=refit,
+                             device=_check_device(args.device), progress=_progress(args))
+        if args.json:
+            print(dumps(res, indent=None))
+        else:
+            print(f"relative rms {res['rmse_rel']:.4f}  delta_e {res['delta_e']:.3g}  ({res['pixels']['used']} px; "
+                  f"refitted {', '.join(res['refitted'])})")
+        return 0
     res = run_evaluate(args.result, args.data, refit_nuisance=args.refit_nuisance, kider_site=_kider_site(args),
                        progress=_progress(args), device=_check_device(args.device), force=args.force)
     if args.json:
@@ -362,7 +458,7 @@ FIT_FLAGS = {
     "free": "free", "per_observation": "per_observation", "integrator": "integrator", "orders": "orders",
     "multiple": "multiple", "view_samples": "view_samples", "rule": "rule", "loss": "loss", "starts": "starts",
     "max_iter": "max_iter", "adam_steps": "adam_steps", "seed": "seed", "wavelengths": "wavelengths",
-    "min_elevation": "min_elevation_deg", "sun_mask": "sun_disc_deg", "max_samples": "max_samples",
+    "min_elevation": "min_elevation_deg", "sun_mask": "sun_mask_deg", "max_samples": "max_samples",
     "sigma_relative": "sigma_relative", "accuracy": "accuracy",
 }
 """The per-fit flags of ``fit`` and ``batch`` (argparse dest -> FitSettings field)."""
@@ -392,18 +488,36 @@ def _add_fit_options(p, D) -> None:
     p.add_argument("--seed", type=int, help=f"seed of the multi-start spread (default {D.seed})")
     p.add_argument("--wavelengths", help="model grid for RGB data, START:STOP:STEP or a list [nm]")
     p.add_argument("--min-elevation", type=float, help=f"horizon mask: lowest elevation used [deg] (default {D.min_elevation_deg:g})")
-    p.add_argument("--sun-mask", type=float, help=f"images: radius of the disc around the sun left out [deg] (default {D.sun_disc_deg:g})")
+    p.add_argument("--sun-mask", type=float, help=f"images: radius of the disk around the sun left out [deg] (default {D.sun_mask_deg:g})")
     p.add_argument("--max-samples", type=int, help="images: use every k-th pixel so that at most this many remain")
     p.add_argument("--sigma-relative", type=float, help=f"images: relative noise when the header has none (default {D.sigma_relative:g})")
-    p.add_argument("--location", help="Kider data: LAT,LON[,ELEV] (default: the Kider site)")
+    p.add_argument("--location", help="LAT,LON[,ELEV] [deg, deg, m]: a photo's place (required), Kider data's site "
+                   "(default: the Kider site)")
     p.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
+
+
+def _add_photo_options(p) -> None:
+    """The flags of a photo (``fit PHOTO``; ``evaluate RESULT PHOTO`` takes --time and --location)."""
+    p.add_argument("--time", help="photo: when it was taken, ISO 8601 with its UTC offset or a zone name "
+                   "(2024-06-01T14:05:00+02:00)")
+    p.add_argument("--camera", help="photo: CAMERA.yaml (projection, cx, cy, radius_px or focal_px, up_azimuth_deg, tilt_deg, "
+                   "vignetting, gains, spectral_sensitivities CSV); default: estimated from the image and the sun")
+    p.add_argument("--mask", help="photo: an image of the photo's size, non-zero = ignore (added to the automatic masks)")
+    p.add_argument("--exposures", help="bracket folder: exposure times of the frames in file-name order, comma list [s] "
+                   "(default: from EXIF, else estimated from the frames' overlap)")
+    p.add_argument("--linear", action="store_true", help="photo: pixel values are linear (no sRGB decoding)")
+    p.add_argument("--response", help="photo: camera response srgb, linear, gamma:G or estimate (a bracket: from the frames)")
 
 
 def _add_fit_parsers(sub) -> None:
     D = FitSettings()  # the help states the defaults of the one definition
     f = sub.add_parser("fit", help="fit an atmosphere to fisheye EXR images or Kider captures (docs/fitting.md)")
-    f.add_argument("data", nargs="+", help="an .exr fisheye, a Kider capture folder, or a folder of either (several: joint fit)")
-    f.add_argument("--config", required=True, help="atmosphere config YAML with an optional fit: section (or a shipped name)")
+    f.add_argument("data", nargs="+", help="an .exr fisheye, a Kider capture folder, or a folder of either (several: joint fit); "
+                   "or one photo: JPEG/PNG/TIFF, camera RAW, Radiance .hdr, EXR without skyfit metadata, or a folder "
+                   "of one scene's bracketed exposures (needs --time and --location; docs/photos.md)")
+    f.add_argument("--config", help="atmosphere config YAML with an optional fit: section (or a shipped name); "
+                   "required for EXR and Kider data, default earth for a photo")
+    _add_photo_options(f)
     f.add_argument("--out", required=True, help="RESULT.json (plots are written beside it)")
     _add_fit_options(f, D)
     f.add_argument("--no-plots", action="store_true", help="do not write PNG plots")
@@ -417,19 +531,21 @@ def _add_fit_parsers(sub) -> None:
     f.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar (default: on a terminal)")
     f.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
     f.add_argument("--dtype", choices=("float32", "float64"), help=f"working precision (default {D.dtype})")
-    f.add_argument("--json", action="store_true")
+    f.add_argument("--json", action="store_true", help="print the summary as one line of JSON")
     f.set_defaults(func=cmd_fit)
 
     e = sub.add_parser("evaluate", help="how well a fitted atmosphere predicts DATA (its own sun position)")
     e.add_argument("result", help="RESULT.json of skyfit fit")
     e.add_argument("data", nargs="+", help="an .exr fisheye, a Kider capture folder, or a folder of either")
+    e.add_argument("--time", help="photo: when it was taken, ISO 8601 with its UTC offset or a zone name")
     e.add_argument("--refit-nuisance", action="store_true", help="re-estimate exposure and the orientation the fit modelled (sun offsets, camera tilts; default the sun azimuth and zenith offsets) on DATA, atmosphere fixed")
-    e.add_argument("--location", help="Kider data: LAT,LON[,ELEV] (default: the Kider site)")
+    e.add_argument("--location", help="LAT,LON[,ELEV] [deg, deg, m]: a photo's place (required), Kider data's site "
+                   "(default: the Kider site)")
     e.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
     e.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar (default: on a terminal)")
     e.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's)")
     e.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
-    e.add_argument("--json", action="store_true")
+    e.add_argument("--json", action="store_true", help="print the summary as one line of JSON")
     e.set_defaults(func=cmd_evaluate)
 
     sm = sub.add_parser("sample", help="emcee posterior around a fit: chain, summary.json, corner/trace plots (docs/uncertainty.md)")
@@ -453,7 +569,7 @@ def _add_fit_parsers(sub) -> None:
     sm.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's)")
     sm.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar with running tau (default: on a terminal)")
     sm.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
-    sm.add_argument("--json", action="store_true")
+    sm.add_argument("--json", action="store_true", help="print the summary as one line of JSON")
     sm.set_defaults(func=cmd_sample)
 
 
@@ -621,7 +737,7 @@ def _add_batch_parser(sub) -> None:
     b.add_argument("--no-plots", action="store_true", help="do not write timeseries.png")
     b.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (resolved on each worker); default cpu")
     b.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar over the items (default: on a terminal)")
-    b.add_argument("--json", action="store_true")
+    b.add_argument("--json", action="store_true", help="print the summary as one line of JSON")
     b.set_defaults(func=cmd_batch)
 
 
@@ -693,9 +809,11 @@ def _add_envmap_parser(sub) -> None:
     v.add_argument("--size", type=int, default=512, help="lat-long height H (width 2H) or cube face edge N, even [px] (default 512)")
     v.add_argument("--sun-zenith", type=float, help="sun zenith angle [deg]")
     v.add_argument("--sun-azimuth", type=float, default=180.0, help="sun azimuth, clockwise from North [deg] (default 180)")
-    v.add_argument("--time", help="ISO 8601 timestamp with UTC offset, e.g. 2013-05-27T09:30:00-04:00 (sun by NREL SPA)")
+    v.add_argument("--time", help="ISO 8601 timestamp with a UTC offset or an IANA time zone name (daylight saving "
+                   "time from the tz database), e.g. 2013-05-27T09:30:00-04:00, '2013-05-27T09:30:00 America/New_York' "
+                   "or 2013-05-27T09:30:00[America/New_York] (sun by NREL SPA)")
     v.add_argument("--location", help="LAT,LON[,ELEV]: degrees North, degrees East, metres (with --time)")
-    v.add_argument("--sun-disk", action="store_true", help="add the attenuated solar disc (its flux exact at any size)")
+    v.add_argument("--sun-disk", action="store_true", help="add the attenuated solar disk (its flux exact at any size)")
     v.add_argument("--preview", action="store_true", help="also write a tone-mapped PNG beside --out (same name, .png)")
     v.add_argument("--spectral", action="store_true", help="also write one channel L<nm> per wavelength (.exr only)")
     v.add_argument("--orders", type=int, default=4, help="scattering orders (1 = single scattering; default 4)")
@@ -876,45 +994,60 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+def _installed_version() -> str:
+    """The installed distribution's version (importlib.metadata; pyproject reads it from ``__version__``),
+    ``__version__`` when skyfit runs from a source tree that is not installed."""
+    import importlib.metadata
+
+    try:
+        return importlib.metadata.version("skyfit")
+    except importlib.metadata.PackageNotFoundError:
+        return __version__
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="skyfit", description="Fit a physically based atmosphere to measured skies.")
-    p.add_argument("--version", action="version", version=f"skyfit {__version__}",
-                   help="print skyfit's version and exit")
+    p.add_argument("--version", action="version", version=f"skyfit {_installed_version()}",
+                   help="print skyfit's version (the installed distribution's) and exit")
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("render", help="render a fisheye sky to OpenEXR")
     r.add_argument("config", help="atmosphere config YAML (or a shipped name: earth, earth_clear_sky_eval, earth_hazy, mars)")
     r.add_argument("--out", required=True, help="output .exr file")
     r.add_argument("--size", type=int, default=256, help="image size in pixels (default 256)")
-    r.add_argument("--projection", choices=PROJECTIONS, default="equidistant", help="fisheye model (docs/camera.md)")
+    r.add_argument("--projection", choices=PROJECTIONS, default="equidistant", help="fisheye model (docs/camera.md; default %(default)s)")
     r.add_argument("--kb-coeffs", metavar="K1,K2,K3,K4", help="kannala_brandt: r = f (t + k1 t^3 + k2 t^5 + k3 t^7 + k4 t^9)")
     r.add_argument("--focal", type=float, help="focal length, dr/dtheta at the centre [px/rad]")
     r.add_argument("--radius", type=float, help="radius of the 90 deg circle [px] (default size/2)")
     r.add_argument("--center", metavar="CX,CY", help="image position of the optical axis [px] (default the middle)")
-    r.add_argument("--up-azimuth", type=float, default=0.0, help="azimuth of the image's up direction [deg]")
+    r.add_argument("--up-azimuth", type=float, default=0.0, help="azimuth of the image's up direction [deg] (default %(default)g)")
     r.add_argument("--tilt", metavar="DEG,DEG", help="optical axis's zenith angle and the azimuth it leans toward [deg]")
     r.add_argument("--max-zenith", type=float, help="field of view: largest angle from the optical axis [deg] (default 90)")
     r.add_argument("--sun-zenith", type=float, help="sun zenith angle [deg]")
-    r.add_argument("--sun-azimuth", type=float, default=180.0, help="sun azimuth, clockwise from North [deg]")
-    r.add_argument("--time", help="ISO 8601 timestamp with UTC offset, e.g. 2013-05-27T09:30:00-04:00 (sun by NREL SPA)")
+    r.add_argument("--sun-azimuth", type=float, default=180.0, help="sun azimuth, clockwise from North [deg] (default %(default)g)")
+    r.add_argument("--time", help="ISO 8601 timestamp with a UTC offset or an IANA time zone name (daylight saving "
+                   "time from the tz database), e.g. 2013-05-27T09:30:00-04:00, '2013-05-27T09:30:00 America/New_York' "
+                   "or 2013-05-27T09:30:00[America/New_York] (sun by NREL SPA)")
     r.add_argument("--location", help="LAT,LON[,ELEV]: degrees North, degrees East, metres (with --time)")
-    r.add_argument("--altitude", type=float, default=0.0, help="observer altitude above the ground [m]")
-    r.add_argument("--integrator", default="taylor", help="NAME[:key=value,...], e.g. trapezoid:samples=64, taylor:a=0.45,b=0.45")
-    r.add_argument("--view-samples", type=int, default=32, help="samples of the outer (view-ray) integral")
-    r.add_argument("--rule", choices=RULES, default="trapezoid", help="outer quadrature rule")
-    r.add_argument("--orders", type=int, default=1, help="scattering orders (1 = single scattering; >= 2: Bruneton's precomputed tables)")
+    r.add_argument("--altitude", type=float, default=0.0, help="observer altitude above the ground [m] (default %(default)g)")
+    r.add_argument("--integrator", default="taylor", help="NAME[:key=value,...], e.g. trapezoid:samples=64, taylor:a=0.45,b=0.45 (default %(default)s)")
+    r.add_argument("--view-samples", type=int, default=32, help="samples of the outer (view-ray) integral (default %(default)s)")
+    r.add_argument("--rule", choices=RULES, default="trapezoid", help="outer quadrature rule (default %(default)s)")
+    r.add_argument("--orders", type=int, default=1, help="scattering orders (1 = single scattering; >= 2: Bruneton's precomputed tables; default %(default)s)")
     r.add_argument("--multiple", choices=("bruneton", "hillaire"), default="bruneton",
-                   help="with --orders >= 2: Bruneton's full orders, or Hillaire 2020's cheaper approximation")
+                   help="with --orders >= 2: Bruneton's full orders, or Hillaire 2020's cheaper approximation (default %(default)s)")
     r.add_argument("--table-sizes", help="R,MU,MUS,NU scattering-table sizes for --orders >= 2 (default 32,128,32,8)")
-    r.add_argument("--wavelengths", default=DEFAULT_WAVELENGTHS, help="START:STOP:STEP or comma list [nm]")
+    r.add_argument("--wavelengths", default=DEFAULT_WAVELENGTHS, help="START:STOP:STEP or comma list [nm] (default %(default)s)")
     r.add_argument("--spectral", action="store_true", help="also write one channel L<nm> per wavelength")
-    r.add_argument("--sun-disk", action="store_true", help="add the attenuated solar disc")
-    r.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    r.add_argument("--preview", action="store_true", help="also write an 8-bit sRGB PNG of the fisheye beside --out "
+                   "(same name, .png; auto-exposed)")
+    r.add_argument("--sun-disk", action="store_true", help="add the attenuated solar disk")
+    r.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="working precision (default %(default)s)")
     r.add_argument("--accuracy", help="auto (= de=1), de=X (mean ΔE) or rel=X (relative radiance error): the cheapest "
                    "measured setting meeting it replaces --integrator/--view-samples/--rule (and with --orders >= 2 "
                    "--multiple/--table-sizes); docs/benchmarks.md, 'Automatic settings'")
     r.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
-    r.add_argument("--json", action="store_true")
+    r.add_argument("--json", action="store_true", help="print the summary as one line of JSON")
     r.set_defaults(func=cmd_render)
 
     d = sub.add_parser("demo", help="the main job on a known sky: render, add noise, fit, uncertainty, export LUTs, "
@@ -924,22 +1057,22 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's)")
     d.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bars (default: on a terminal)")
     d.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
-    d.add_argument("--json", action="store_true")
+    d.add_argument("--json", action="store_true", help="print the summary as one line of JSON")
     d.set_defaults(func=cmd_demo)
     _add_fit_parsers(sub)
     _add_batch_parser(sub)
 
     b = sub.add_parser("bench", help="speed/accuracy table of the transmittance integrators")
-    b.add_argument("--out", default="bench_out")
+    b.add_argument("--out", default="bench_out", help="report folder (default %(default)s)")
     b.add_argument("--quick", action="store_true", help="a reduced table for CI")
     b.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
     b.add_argument("--threads", type=int, help="torch CPU threads (default: the bench's own choice, 2; trade study 1)")
     b.add_argument("--study", choices=("integrators", "trade", "all"), default="all",
                    help="integrators: Gałaj 2021 Table 3 (bench.md); trade: every renderer setting on fixed scenes "
-                        "(trade.md, frontier.json for --accuracy); all: both (default)")
+                        "(trade.md, frontier.json for --accuracy); all: both (default %(default)s)")
     b.add_argument("--frontier-out", help="also write the trade study's frontier.json here (skyfit/data/auto_settings.json "
                                           "is the one --accuracy reads)")
-    b.add_argument("--json", action="store_true")
+    b.add_argument("--json", action="store_true", help="print the summary as one line of JSON")
     b.set_defaults(func=cmd_bench)
 
     c = sub.add_parser("calibrate-integrator", help="fit Taylor a, b; pick spline grid and view samples for an atmosphere")
@@ -947,34 +1080,34 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", required=True, help="output .json file (docs/integrator_calibration.md)")
     c.add_argument("--tolerance", type=float, default=1e-3, help="relative single-scattering radiance tolerance (default 1e-3)")
     c.add_argument("--transmittance-tolerance", type=float, default=1e-3, help="spline transmittance tolerance (default 1e-3)")
-    c.add_argument("--metric", choices=("transmittance", "column", "radiance"), default="transmittance", help="Taylor fit error metric (docs/integrator_calibration.md)")
-    c.add_argument("--d-spacing", choices=("view", "paper"), default="view", help="line distances of the (d, t) domain")
-    c.add_argument("--view-rule", choices=RULES, default="trapezoid", help="outer quadrature rule of the view samples")
-    c.add_argument("--spline-kind", choices=SPLINE_KINDS, default="natural_cubic", help="spline kind of the grid search")
-    c.add_argument("--wavelengths", default=DEFAULT_WAVELENGTHS, help="START:STOP:STEP or comma list [nm]")
+    c.add_argument("--metric", choices=("transmittance", "column", "radiance"), default="transmittance", help="Taylor fit error metric (docs/integrator_calibration.md; default %(default)s)")
+    c.add_argument("--d-spacing", choices=("view", "paper"), default="view", help="line distances of the (d, t) domain (default %(default)s)")
+    c.add_argument("--view-rule", choices=RULES, default="trapezoid", help="outer quadrature rule of the view samples (default %(default)s)")
+    c.add_argument("--spline-kind", choices=SPLINE_KINDS, default="natural_cubic", help="spline kind of the grid search (default %(default)s)")
+    c.add_argument("--wavelengths", default=DEFAULT_WAVELENGTHS, help="START:STOP:STEP or comma list [nm] (default %(default)s)")
     c.add_argument("--quick", action="store_true", help="coarser domain, fewer rays and candidates (seconds, for CI)")
     c.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
-    c.add_argument("--json", action="store_true")
+    c.add_argument("--json", action="store_true", help="print the summary as one line of JSON")
     c.set_defaults(func=cmd_calibrate_integrator)
 
     e = sub.add_parser("export-lut", help="precompute a fitted atmosphere's tables and write them as LUTs (docs/luts.md)")
     e.add_argument("result", help="RESULT.json written by skyfit fit")
     e.add_argument("--out", required=True, help="output directory")
-    e.add_argument("--format", choices=FORMATS, default="exr", help="exr (OpenEXR, float32) or npz")
+    e.add_argument("--format", choices=FORMATS, default="exr", help="exr (OpenEXR, float32) or npz (default %(default)s)")
     e.add_argument("--orders", type=int, default=4, help="scattering orders in the tables (default 4)")
     e.add_argument("--table-sizes", help="R,MU,MUS,NU scattering-table sizes (default 32,128,32,8)")
     e.add_argument("--wavelengths", help="START:STOP:STEP or comma list [nm] (default: the fit's model wavelengths)")
     e.add_argument("--rgb", action="store_true", help="linear sRGB channels instead of one per wavelength")
     e.add_argument("--layout", choices=("skyfit", "bruneton2017", "unreal"), default="skyfit",
-                   help="skyfit: spectral tables with multiple scattering apart (default); bruneton2017: the RGB "
+                   help="skyfit: spectral tables with multiple scattering apart; bruneton2017: the RGB "
                         "textures, .dat files and GLSL an unmodified Bruneton 2017 shader samples; unreal: Unreal "
-                        "SkyAtmosphere parameters and Hillaire 2020's LUTs (docs/luts.md)")
+                        "SkyAtmosphere parameters and Hillaire 2020's LUTs (docs/luts.md; default %(default)s)")
     e.add_argument("--precision", choices=("f16", "f32"),
                    help="--layout bruneton2017: scattering textures in half or single floats (default f32)")
     e.add_argument("--sun-zenith", help="--layout unreal: sun zenith angle(s) of the sky-view LUTs, comma list [deg] "
                                         "(default 45)")
     e.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
-    e.add_argument("--json", action="store_true")
+    e.add_argument("--json", action="store_true", help="print the summary as one line of JSON")
     e.set_defaults(func=cmd_export_lut)
     _add_envmap_parser(sub)
     for name in FORCE_COMMANDS:

@@ -97,6 +97,11 @@ PAIRS: list[tuple[str, list[str], str]] = [
     ("export-lut", ["--precision", "f16"], "--precision"),
     ("fit", ["--orders", "2", "--multiple", "bruneton", "--integrator", "gauss:samples=0"], "samples"),
     ("fit", ["--free", "mie_beta_550,mie_aod_550"], "mie_aod_550"),
+    # the photo flags on an EXR with skyfit's header (not a photo)
+    ("fit", ["--camera", "{w}/camera.yaml"], "--camera"),
+    ("fit", ["--mask", "{w}/mask.png"], "--mask"),
+    ("fit", ["--exposures", "0.01,0.1"], "--exposures"),
+    ("fit", ["--response", "srgb"], "--response"),
 ]
 
 # -- files -------------------------------------------------------------------------------------

@@ -1,4 +1,15 @@
-"""Fisheye cameras (directions per pixel, masks), fisheye sky images, the sun's position, and photos (LDR and synthetic)."""
+"""Fisheye cameras (directions per pixel, masks), fisheye sky images, the sun's position, and photos (LDR and synthetic);
+the camera from a photo (circle, sun, heading: autocal) and what is not sky in it (masks)."""
+from .autocal import (
+    CalibrationError,
+    CameraGuess,
+    Circle,
+    SunDetection,
+    cameras_from_sun,
+    detect_circle,
+    detect_sun,
+    heading_from_sun,
+)
 from .fisheye import (
     CLASSICAL_PROJECTIONS,
     PROJECTIONS,
@@ -12,6 +23,7 @@ from .fisheye import (
 from .image import SkyImage, render_fisheye
 from .kannala_brandt import check_kb_monotone, kb_derivative, kb_polynomial, kb_theta
 from .likelihood import censored_gaussian_nll, fit_exposure_scale
+from .masks import grow_outlier_mask, obstacle_mask, sun_mask
 from .photo_io import PhotoObservation, load_ldr_photo
 from .sensor import SyntheticPhoto, spectral_response_matrix, synthesize_photo, vignetting_map
 from .srgb import srgb_decode, srgb_encode
@@ -20,21 +32,31 @@ from .sun import SunPosition, delta_t_espenak_meeus, julian_day, parse_location,
 __all__ = [
     "CLASSICAL_PROJECTIONS",
     "PROJECTIONS",
+    "CalibrationError",
+    "CameraGuess",
+    "Circle",
     "FisheyeCamera",
     "PhotoObservation",
     "SkyImage",
+    "SunDetection",
     "SunPosition",
     "SyntheticPhoto",
+    "cameras_from_sun",
     "censored_gaussian_nll",
     "check_kb_monotone",
     "delta_t_espenak_meeus",
+    "detect_circle",
+    "detect_sun",
     "enu_to_zenith_azimuth",
     "fit_exposure_scale",
+    "grow_outlier_mask",
+    "heading_from_sun",
     "julian_day",
     "kb_derivative",
     "kb_polynomial",
     "kb_theta",
     "load_ldr_photo",
+    "obstacle_mask",
     "parse_location",
     "parse_time",
     "render_fisheye",
@@ -43,6 +65,7 @@ __all__ = [
     "spectral_response_matrix",
     "srgb_decode",
     "srgb_encode",
+    "sun_mask",
     "sun_position",
     "synthesize_photo",
     "theta_to_rho",

@@ -372,28 +372,110 @@ SUN_RADIUS_DEG: float = 0.26667
 # Time
 # --------------------------------------------------------------------------
 
+_SUFFIX = re.compile(r"^(?P<time>[^\[\]]+?)(?P<tags>(?:\[[^\[\]]*\])+)$")
+"""An RFC 9557 timestamp: ISO 8601 followed by bracketed suffixes, ``...[America/New_York][u-ca=iso8601]``."""
+_TIME_HELP = ("use ISO 8601 with a UTC offset or a time zone name, e.g. 2013-05-27T09:30:00-04:00, "
+              "2013-05-27T09:30:00 America/New_York or 2013-05-27T09:30:00[America/New_York]")
+
+
+def _zone(name: str):
+    """The IANA time zone ``name`` (zoneinfo, with the tzdata package where the system has no database)."""
+    import zoneinfo
+
+    try:
+        return zoneinfo.ZoneInfo(name)
+    except (zoneinfo.ZoneInfoNotFoundError, ValueError, OSError):
+        raise ValueError(f"unknown time zone {name!r}; use an IANA name such as America/New_York or Europe/Berlin, "
+                         "or a UTC offset such as -04:00") from None
+
+
+def _split_zone(text: str) -> tuple[str, str | None]:
+    """(ISO 8601 part, zone name or None) of ``TIME ZONE`` or RFC 9557's ``TIME[ZONE]`` (extension tags
+    ``[key=value]`` are ignored unless marked critical with ``!``)."""
+    m = _SUFFIX.match(text)
+    if m:
+        zone = None
+        for tag in re.findall(r"\[([^\[\]]*)\]", m["tags"]):
+            critical, tag = tag.startswith("!"), tag.lstrip("!")
+            if "=" in tag:
+                if critical:
+                    raise ValueError(f"timestamp {text!r}: unsupported critical suffix tag [!{tag}]")
+                continue
+            if zone is not None or not tag:
+                raise ValueError(f"timestamp {text!r}: {'two time zones' if tag else 'empty time zone'} in the suffix")
+            zone = tag
+        return m["time"].strip(), zone
+    head, _, tail = text.rpartition(" ")
+    if head and tail and any(c.isalpha() for c in tail):
+        return head.strip(), tail
+    return text, None
+
+
+def _localize(value: _dt.datetime, tz, text: str) -> _dt.datetime:
+    """``value`` (naive wall time, or aware with the offset written beside the zone) in zone ``tz``.
+
+    A wall time that the zone skips (spring forward) is an error; one it repeats (fall back) needs
+    the offset (RFC 9557: ``2013-11-03T01:30:00-05:00[America/New_York]``)."""
+    wall = value.replace(tzinfo=None)
+    options = {}
+    for fold in (0, 1):
+        t = wall.replace(tzinfo=tz, fold=fold)
+        if t.astimezone(_dt.timezone.utc).astimezone(tz).replace(tzinfo=None) == wall:  # a wall time that exists
+            options.setdefault(t.utcoffset(), t)
+    if not options:
+        raise ValueError(f"timestamp {text!r}: {wall.isoformat()} does not exist in {tz.key} (skipped by a clock change)")
+    if value.tzinfo is not None:
+        if value.utcoffset() not in options:
+            have = ", ".join(_offset_text(o) for o in options)
+            raise ValueError(f"timestamp {text!r}: offset {_offset_text(value.utcoffset())} is not {tz.key}'s ({have}) "
+                             f"at {wall.isoformat()}")
+        return options[value.utcoffset()]
+    if len(options) > 1:
+        have = " or ".join(_offset_text(o) for o in options)
+        raise ValueError(f"timestamp {text!r}: {wall.isoformat()} happens twice in {tz.key} (clock change: {have}); "
+                         f"write the offset, e.g. {wall.isoformat()}{_offset_text(next(iter(options)))}[{tz.key}]")
+    return next(iter(options.values()))
+
+
+def _offset_text(off: _dt.timedelta) -> str:
+    m = round(off.total_seconds() / 60)
+    return f"{'-' if m < 0 else '+'}{abs(m) // 60:02d}:{abs(m) % 60:02d}"
+
+
 def parse_time(value, utc_offset_hours: float | None = None) -> _dt.datetime:
     """One timestamp as an aware datetime.
 
     Args:
         value: an aware ``datetime``; a naive ``datetime`` with
-            ``utc_offset_hours``; or an ISO 8601 string (``2013-05-27T09:30:00-04:00``,
-            ``...Z``; a string without offset needs ``utc_offset_hours``).
+            ``utc_offset_hours``; or an ISO 8601 string with a UTC offset
+            (``2013-05-27T09:30:00-04:00``, ``...Z``) or an IANA time zone name,
+            after a space (``2013-05-27T09:30:00 America/New_York``) or as
+            RFC 9557's suffix (``2013-05-27T09:30:00[America/New_York]``, also
+            with the offset: ``...-04:00[America/New_York]``). A zone's offset is
+            the one in force at that time (daylight saving time from the tz
+            database, via zoneinfo). A string without offset or zone needs
+            ``utc_offset_hours``.
         utc_offset_hours: offset of local time from UTC for naive input, e.g.
             -4 for EDT. An aware input with a different offset is an error. [h]
 
     Returns:
-        An aware datetime (its own offset kept).
+        An aware datetime with its own offset (a zone's: the offset in force then).
 
     Raises:
-        ValueError: unparsable text, or a naive time without an offset.
+        ValueError: unparsable text, an unknown zone, a local time the zone skips
+            or repeats (without an offset to choose), or a naive time without an offset.
     """
     if isinstance(value, str):
         text = value.strip()
+        body, zone = _split_zone(text)
+        tz = _zone(zone) if zone is not None else None
         try:
-            value = _dt.datetime.fromisoformat(text)
+            value = _dt.datetime.fromisoformat(body)
         except ValueError:
-            raise ValueError(f"cannot parse timestamp {text!r}; use ISO 8601, e.g. 2013-05-27T09:30:00-04:00") from None
+            raise ValueError(f"cannot parse timestamp {text!r}; {_TIME_HELP}") from None
+        if tz is not None:  # as a fixed offset: arithmetic between two results is then exact across clock changes
+            local = _localize(value, tz, text)
+            value = local.replace(tzinfo=_dt.timezone(local.utcoffset()), fold=0)
     elif isinstance(value, np.datetime64):
         value = value.astype("datetime64[us]").astype(_dt.datetime)
     if not isinstance(value, _dt.datetime):

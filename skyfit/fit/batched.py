@@ -47,7 +47,7 @@ from ..scattering.batched import BatchCoefficients, RayGeometry, batched_single_
 from ..transmittance.chapman import ChapmanOpticalDepth
 from ..transmittance.quadrature import QuadratureOpticalDepth
 from .model import FitProblem
-from .parameters import ORIENTATION, PARAMETERS
+from .parameters import CAMERA_RESPONSE, ORIENTATION, PARAMETERS
 
 
 class _ObsGeometry(RayGeometry):
@@ -129,6 +129,11 @@ class BatchedLikelihood:
         free = set(problem.param.free)
         if free & set(ORIENTATION):
             return f"free {sorted(free & set(ORIENTATION))} move the view geometry"
+        response = {n for n in CAMERA_RESPONSE if n in free or problem.param.values[n] != problem.param.defaults[n]}
+        if response and any(o.kind == "rgb" for o in problem.observations):
+            return f"{sorted(response)} of RGB data (the camera's gains and vignetting are not batched)"
+        if any(o.censored is not None for o in problem.observations):
+            return "censored values"
         return ""
 
     # -- parameters ------------------------------------------------------------------------

@@ -77,6 +77,12 @@ class Observation:
         location: {"latitude_deg", "longitude_deg", "elevation_m"}, when known.
         metadata: anything else (image shape and pixel index of each sample for images,
             ring and index for Kider, the model wavelength grid an EXR was rendered on).
+        image_radius: for image data, each sample's distance from the optical axis over the
+            radius of the 90 deg circle, shape (N,) (the ``vignetting`` parameter acts on it);
+            None for other data. [1]
+        censored: per value, +1 where the value is only a lower bound (saturated), -1 where it is
+            only an upper bound (black), 0 where measured, shape (N, C), int8; None: all measured.
+            A model beyond the bound on the censored side costs nothing (:class:`~skyfit.fit.model.FitProblem`).
     """
 
     name: str
@@ -96,6 +102,8 @@ class Observation:
     time: str | None = None
     location: dict | None = None
     metadata: dict = dataclasses.field(default_factory=dict)
+    image_radius: Tensor | None = None
+    censored: Tensor | None = None
 
     def __post_init__(self):
         where = f"observation {self.source}"
@@ -114,6 +122,10 @@ class Observation:
             t = getattr(self, name)
             if t.shape not in ((), (n,)):
                 raise DataError(f"{where}: {name} must have shape () or ({n},), got {tuple(t.shape)}")
+        if self.image_radius is not None and (self.image_radius.shape != (n,) or not bool(torch.isfinite(self.image_radius).all())):
+            raise DataError(f"{where}: image_radius must be finite with shape ({n},)")
+        if self.censored is not None and (self.censored.shape != (n, c) or self.censored.is_floating_point()):
+            raise DataError(f"{where}: censored must be an integer tensor of shape ({n}, {c}) with values -1, 0, +1")
         if self.kind == "spectral":
             if self.wavelengths is None or self.wavelengths.shape != (c,):
                 raise DataError(f"{where}: spectral data needs one wavelength per channel")
@@ -193,13 +205,16 @@ class Observation:
             vec, valid = view.pixel_vectors(dtype)
             vec, valid = vec.reshape(-1, 3), valid.reshape(-1)
             image_shape = list(view.shape)
+            with torch.no_grad():  # each pixel's distance from the optical axis over the 90-degree radius (vignetting)
+                xx, yy = view.pixel_grid(dtype)
+                radius = (torch.hypot(xx - view.cx.to(dtype), yy - view.cy.to(dtype)) / view.r90.to(dtype)).reshape(-1)
         else:
             vec = torch.as_tensor(view, dtype=dtype)
             if values.ndim != 2 or vec.shape != (values.shape[0], 3):
                 raise DataError(f"{where}: directions of shape {tuple(vec.shape)} do not fit radiance of shape "
                                 f"{tuple(values.shape)}: need (N, 3) and (N, C)")
             valid = torch.isfinite(vec).all(-1)
-            image_shape = None
+            image_shape, radius = None, None
         values = values.reshape(-1, C)
         keep = valid.clone()
         if mask is not None:
@@ -263,7 +278,8 @@ class Observation:
         return cls(name=name, source=name, kind=kind, directions=vec[idx], sun_zenith=sz, sun_azimuth=sa, values=vals,
                    sigma=sig, mask=torch.ones(idx.numel(), dtype=torch.bool), channels=channels, wavelengths=lam,
                    sun_distance_au=dated.get("sun_distance_au"), altitude_m=float(altitude_m), time=dated.get("time"),
-                   location=dated.get("location"), metadata=meta)
+                   location=dated.get("location"), metadata=meta,
+                   image_radius=None if radius is None else radius[idx].detach().clone())
 
     def summary(self) -> dict:
         """JSON-ready description for RESULT.json's ``data``."""

@@ -19,6 +19,7 @@ from torch import Tensor
 
 from ..atmosphere import Atmosphere
 from ..camera.fisheye import zenith_azimuth_to_enu
+from ..camera.sensor import spectral_response_matrix
 from ..render.colour import xyz_to_srgb_matrix, spectral_to_xyz_matrix
 from ..transmittance import OpticalDepthIntegrator
 from .data import DataError, Observation
@@ -146,6 +147,11 @@ def channel_matrix(model_wavelengths: Tensor, obs: Observation) -> Tensor:
     (:mod:`skyfit.render.colour`).
     """
     lam = model_wavelengths
+    if obs.kind == "rgb" and obs.metadata.get("response") is not None:
+        # a camera's own spectral sensitivities (wavelengths [nm] (K,), sensitivities (K, 3)) instead of CIE -> sRGB
+        wl, sens = obs.metadata["response"]
+        return spectral_response_matrix(lam, torch.as_tensor(np.asarray(sens), dtype=lam.dtype, device=lam.device),
+                                        torch.as_tensor(np.asarray(wl), dtype=lam.dtype, device=lam.device))
     if obs.kind == "rgb":
         xyz = spectral_to_xyz_matrix(lam)
         return xyz @ torch.as_tensor(xyz_to_srgb_matrix(), dtype=lam.dtype, device=lam.device).T
@@ -225,8 +231,36 @@ class FitProblem:
         return out
 
     def predict_unscaled(self, phys: dict) -> list[Tensor]:
-        """Each observation's channels for its used samples, (N_i, C_i), exposure 1."""
-        return [s @ m for s, m in zip(self.spectra(phys), self.matrices)]
+        """Each observation's channels for its used samples, (N_i, C_i), exposure 1.
+
+        RGB image data go through the camera's response: channel gains (1 for green,
+        ``gain_red``, ``gain_blue``: a white balance) and the relative illumination
+        ``1 + vignetting r^2`` at each sample's normalised image radius r
+        (:attr:`Observation.image_radius`); other data are left as rendered.
+        """
+        out = []
+        for i, (s, m, o) in enumerate(zip(self.spectra(phys), self.matrices, self.observations)):
+            p = s @ m
+            if o.kind == "rgb":
+                nu = self.param.nuisance(phys, i)
+                one = torch.ones_like(nu["gain_red"])
+                p = p * torch.stack([nu["gain_red"], one, nu["gain_blue"]])
+                if o.image_radius is not None:
+                    p = p * (1.0 + nu["vignetting"] * o.image_radius[o.mask] ** 2)[:, None]
+            out.append(p)
+        return out
+
+    def censor(self, pred: Tensor, i: int) -> Tensor:
+        """Observation i's prediction with each censored value that the model already satisfies set to
+        the data (a saturated value is a lower bound: any model at or above it fits; a black one an upper
+        bound), so that it adds nothing to the loss and pulls no gradient; the limit of the censored
+        (Tobit) likelihood of :func:`skyfit.camera.censored_gaussian_nll` for noise small against the bound."""
+        o = self.observations[i]
+        if o.censored is None:
+            return pred
+        c, v = o.censored[o.mask], o.values[o.mask]
+        done = ((c > 0) & (pred >= v)) | ((c < 0) & (pred <= v))
+        return torch.where(done, v, pred)
 
     def predict(self, x: Tensor) -> list[Tensor]:
         """Each observation's predicted channels for its used samples, (N_i, C_i)."""
@@ -237,7 +271,8 @@ class FitProblem:
         total = preds[0].new_zeros(())
         for i, (p, o) in enumerate(zip(preds, self.observations)):
             nu = self.param.nuisance(phys, i)
-            total = total + self.loss(p, o.values[o.mask], o.sigma[o.mask], noise_scale=nu["noise_scale"], reduction="sum")
+            total = total + self.loss(self.censor(p, i), o.values[o.mask], o.sigma[o.mask], noise_scale=nu["noise_scale"],
+                                      reduction="sum")
         return total / max(self.n_elements, 1)
 
     def objective(self, x: Tensor) -> Tensor:
@@ -257,8 +292,11 @@ class FitProblem:
             return x
         with torch.no_grad():
             preds = self.predict_unscaled(self.param.to_physical(x))
-            num = [float((p * o.values[o.mask] / o.sigma[o.mask] ** 2).sum()) for p, o in zip(preds, self.observations)]
-            den = [float((p * p / o.sigma[o.mask] ** 2).sum()) for p, o in zip(preds, self.observations)]
+            # censored values are bounds, not measurements: they take no part in the closed form
+            w = [(1.0 / o.sigma[o.mask] ** 2) * (1.0 if o.censored is None else (o.censored[o.mask] == 0).to(p.dtype))
+                 for p, o in zip(preds, self.observations)]
+            num = [float((p * o.values[o.mask] * wi).sum()) for p, o, wi in zip(preds, self.observations, w)]
+            den = [float((p * p * wi).sum()) for p, wi in zip(preds, w)]
         per = self.param.is_per_observation("exposure")
         ks = [n / d if d > 0 else 1.0 for n, d in zip(num, den)] if per else [sum(num) / sum(den) if sum(den) > 0 else 1.0]
         ks = [k if k > 0 and math.isfinite(k) else 1.0 for k in ks]
@@ -272,6 +310,7 @@ class FitProblem:
         with torch.no_grad():
             preds = self.predict(x)
             loss = float(self.loss_from_predictions(preds, self.param.to_physical(x)))
+            preds = [self.censor(p, i) for i, p in enumerate(preds)]  # a satisfied bound is no error
         per = [observation_metrics(p, o) for p, o in zip(preds, self.observations)]
         return {**pool_metrics(per), "loss": loss, "per_observation": per}
 

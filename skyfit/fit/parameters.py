@@ -18,7 +18,7 @@ which is what Adam's step size and L-BFGS's first step assume.
 Names, units and meanings are listed in :data:`PARAMETERS` and in docs/fitting.md.
 *Shared* parameters describe the atmosphere; the *nuisance* parameters
 (``exposure``, ``sun_azimuth_offset``, ``sun_zenith_offset``, ``camera_tilt_north``,
-``camera_tilt_east``, ``noise_scale``) describe the instrument and may take one value per observation in a joint fit.
+``camera_tilt_east``, ``noise_scale``, and for photos ``gain_red``, ``gain_blue``, ``vignetting``) describe the instrument and may take one value per observation in a joint fit.
 """
 from __future__ import annotations
 
@@ -156,6 +156,12 @@ PARAMETERS: dict[str, ParameterSpec] = {
                       description="the instrument's zenith axis tilted toward North, within +-10 degrees"),
         ParameterSpec("camera_tilt_east", "rad", "interval", 1.0, -10 * _DEG, 10 * _DEG, (-0.02, 0.02), nuisance=True, prior="uniform",
                       description="the instrument's zenith axis tilted toward East, within +-10 degrees"),
+        ParameterSpec("gain_red", "1", "loginterval", 1.0, 0.1, 10.0, (0.8, 1.25), nuisance=True, prior="loguniform",
+                      description="RGB data: the red channel's gain relative to green (a camera's white balance)"),
+        ParameterSpec("gain_blue", "1", "loginterval", 1.0, 0.1, 10.0, (0.8, 1.25), nuisance=True, prior="loguniform",
+                      description="RGB data: the blue channel's gain relative to green (a camera's white balance)"),
+        ParameterSpec("vignetting", "1", "interval", 1.0, -0.9, 0.5, (-0.2, 0.0), nuisance=True, prior="uniform",
+                      description="image data: relative illumination 1 + v r^2 at normalised image radius r (r = 1 at 90 deg)"),
     )
 }
 """Every fittable parameter by name: the one table of parameter facts (unit, transform, range, typical span,
@@ -165,10 +171,14 @@ NUISANCE: tuple[str, ...] = tuple(n for n, s in PARAMETERS.items() if s.nuisance
 ATMOSPHERE_PARAMETERS: tuple[str, ...] = tuple(n for n, s in PARAMETERS.items() if not s.nuisance)
 ORIENTATION: tuple[str, ...] = ("sun_azimuth_offset", "sun_zenith_offset", "camera_tilt_north", "camera_tilt_east")
 """The instrument's orientation: sun offsets and the tilt of its zenith axis (a camera yaw is -sun_azimuth_offset)."""
-DEFAULT_PER_OBSERVATION: tuple[str, ...] = ("exposure",) + ORIENTATION
-"""Nuisance parameters that take one value per observation unless the config says otherwise."""
+CAMERA_RESPONSE: tuple[str, ...] = ("gain_red", "gain_blue", "vignetting")
+"""A camera's colour balance and relative illumination: act on RGB image data only (:class:`skyfit.fit.model.FitProblem`)."""
+DEFAULT_PER_OBSERVATION: tuple[str, ...] = ("exposure",) + ORIENTATION + ("gain_red", "gain_blue")
+"""Nuisance parameters that take one value per observation unless the config says otherwise
+(``vignetting``, a property of the lens, and ``noise_scale`` are shared)."""
 
-_NUISANCE_DEFAULTS = {"exposure": 1.0, "noise_scale": 1.0, **{n: 0.0 for n in ORIENTATION}}
+_NUISANCE_DEFAULTS = {"exposure": 1.0, "noise_scale": 1.0, **{n: 0.0 for n in ORIENTATION},
+                      "gain_red": 1.0, "gain_blue": 1.0, "vignetting": 0.0}
 
 
 def as_number(value, name: str) -> float:
@@ -500,7 +510,7 @@ class Parameterisation:
             lo, hi = spec.typical
             if name == "ground_albedo_scale":
                 hi = min(hi, 0.99 * self._albedo_scale_hi)
-            if lo == hi or name in ORIENTATION or name == "exposure":
+            if lo == hi or name in ORIENTATION or name in CAMERA_RESPONSE or name == "exposure":
                 continue
             perm = torch.randperm(m, generator=generator)
             u = (perm.to(torch.float64) + torch.rand(m, generator=generator, dtype=torch.float64)) / m

@@ -68,7 +68,7 @@ class FitSettings:
     rel_tol: float = FitOptions.rel_tol
     wavelengths: str | None = None
     min_elevation_deg: float = 0.0
-    sun_disc_deg: float = 2.0
+    sun_mask_deg: float = 2.0
     saturation: float | None = None
     max_samples: int | None = None
     sigma_relative: float = 0.01
@@ -86,6 +86,11 @@ class FitSettings:
     by the cheapest measured setting meeting it (:mod:`skyfit.render.auto`, docs/benchmarks.md)."""
 
     @property
+    def sun_disc_deg(self) -> float:
+        """The old name of :attr:`sun_mask_deg` (read-only). [deg]"""
+        return self.sun_mask_deg
+
+    @property
     def torch_dtype(self) -> torch.dtype:
         return DTYPES[self.dtype]
 
@@ -96,6 +101,8 @@ class FitSettings:
 
 
 FIT_SECTION_KEYS = frozenset(f.name for f in dataclasses.fields(FitSettings))
+RENAMED_KEYS = {"sun_disc_deg": "sun_mask_deg"}
+"""Old fit-setting names still read (configs, RESULT.json ``settings``) -> today's (the ``--sun-mask`` flag's)."""
 
 _INF = float("inf")
 SETTING_RANGES: dict[str, tuple[str, float, float, str]] = {
@@ -104,7 +111,7 @@ SETTING_RANGES: dict[str, tuple[str, float, float, str]] = {
     "seed": ("int", 0, _INF, "[)"), "adam_steps": ("int", 0, _INF, "[)"), "max_iter": ("int", 1, _INF, "[)"),
     "lut_directions": ("int", 1, _INF, "[)"), "lut_samples": ("int", 1, _INF, "[)"), "max_samples": ("int", 1, _INF, "[)"),
     "grad_tol": ("float", 0, _INF, "()"), "rel_tol": ("float", 0, _INF, "()"),
-    "min_elevation_deg": ("float", -90, 90, "[)"), "sun_disc_deg": ("float", 0, 180, "[)"),
+    "min_elevation_deg": ("float", -90, 90, "[)"), "sun_mask_deg": ("float", 0, 180, "[)"),
     "saturation": ("float", 0, _INF, "()"), "sigma_relative": ("float", 0, _INF, "[)"),
     "bin_nm": ("float", 0, _INF, "()"), "select_heldout": ("float", 0, 1, "[)"),
 }
@@ -160,16 +167,23 @@ def fit_settings(section: dict | None, overrides: dict | None = None, where: str
     overrides = {k: v for k, v in (overrides or {}).items() if v is not None}
     prefix = f"{where}: " if where else ""
     for place, d in (("in config section 'fit'", section), ("among the fit settings", overrides)):
-        unknown = set(d) - FIT_SECTION_KEYS
+        unknown = set(d) - FIT_SECTION_KEYS - set(RENAMED_KEYS)
         if unknown:
             raise FitError(f"{prefix if d is section else ''}unknown key(s) {sorted(unknown)} {place}; "
                            f"known: {sorted(FIT_SECTION_KEYS)}")
-    section = {k: coerce_setting(k, v) for k, v in section.items()}
-    overrides = {k: coerce_setting(k, v) for k, v in overrides.items()}
+        both = [k for k in RENAMED_KEYS if k in d and RENAMED_KEYS[k] in d]
+        if both:
+            raise FitError(f"{prefix if d is section else ''}{both[0]} is the old name of {RENAMED_KEYS[both[0]]}; "
+                           f"give only {RENAMED_KEYS[both[0]]}")
+    key = lambda k: RENAMED_KEYS.get(k, k)  # noqa: E731  (checked under today's name, reported under the user's)
+    section = {k: coerce_setting(key(k), v) for k, v in section.items()}
+    overrides = {k: coerce_setting(key(k), v) for k, v in overrides.items()}
     for k, v in section.items():
-        check_setting(k, v, f"{prefix}fit.{k}")
+        check_setting(key(k), v, f"{prefix}fit.{k}")
     for k, v in overrides.items():
-        check_setting(k, v, k)
+        check_setting(key(k), v, k)
+    section = {key(k): v for k, v in section.items()}
+    overrides = {key(k): v for k, v in overrides.items()}
     merged = {**section, **overrides}
     for key in ("free", "per_observation"):
         v = merged.get(key)
@@ -226,7 +240,7 @@ def load_data(data: Sequence[str | Path], s: FitSettings, kider_site: dict | Non
     for kind, p in expand_data_paths(data):
         if kind == "exr":
             obs.append(observation_from_exr(
-                p, sigma_relative=s.sigma_relative, min_elevation_deg=s.min_elevation_deg, sun_disc_deg=s.sun_disc_deg,
+                p, sigma_relative=s.sigma_relative, min_elevation_deg=s.min_elevation_deg, sun_disc_deg=s.sun_mask_deg,
                 saturation=s.saturation, max_samples=max_samples, dtype=s.torch_dtype))
         else:
             o = observation_from_kider(p, bin_nm=s.bin_nm, per_sample_sun=s.per_sample_sun, dtype=s.torch_dtype,

@@ -54,7 +54,8 @@ def sample_posterior(problem: FitProblem, x0: Tensor, out_dir: str | Path | None
                      progress: bool = False, batched: bool | str = "auto", laplace: dict | None = None,
                      final_problem: FitProblem | None = None, checkpoint_seconds: float = 10.0,
                      plots: bool = True, predictive_draws: int = 64, init_scale: float = 0.1,
-                     stop_after: int | None = None, extra: dict | None = None) -> dict:
+                     stop_after: int | None = None, extra: dict | None = None,
+                     truths: Mapping[str, float] | None = None) -> dict:
     """Sample the posterior of ``problem`` around the fitted ``x0``; write DIR/chain.h5, summary.json, plots.
 
     Args:
@@ -76,6 +77,7 @@ def sample_posterior(problem: FitProblem, x0: Tensor, out_dir: str | Path | None
         predictive_draws: posterior draws for the predictive spread.
         stop_after: stop after this many new steps, leaving only the last checkpoint (tests).
         extra: merged into summary.json (e.g. the command's settings).
+        truths: name -> true value, drawn as lines on the corner plot where known (``skyfit demo``).
 
     Returns:
         the summary dict (also DIR/summary.json).
@@ -179,7 +181,7 @@ def sample_posterior(problem: FitProblem, x0: Tensor, out_dir: str | Path | None
         summary["chain_array"] = chain
         return summary
     if plots:
-        summary["plots"] = write_plots(out_dir, chain, diag, phys, names, problem, pstd)
+        summary["plots"] = write_plots(out_dir, chain, diag, phys, names, problem, pstd, truths=truths)
     write_text_atomic(out_dir / SUMMARY_FILE, dumps(summary))
     return summary
 
@@ -297,11 +299,13 @@ def build_problem(data, config: dict, init: dict, init_path, kider_site: dict | 
 
 def run_sample(data, config: dict, init_path, out_dir, *, overrides: dict | None = None, kider_site: dict | None = None,
                resume: bool = False, progress: bool = False, plots: bool = True, laplace: bool = True,
-               device="cpu", force: bool = False, config_source: str = "") -> dict:
+               device="cpu", force: bool = False, config_source: str = "",
+               truths: Mapping[str, float] | None = None) -> dict:
     """``skyfit sample``: rebuild the fit's problem, sample it, write DIR/chain.h5, summary.json and plots.
 
     ``force`` runs even when the memory or time estimate says no (skyfit.resources); ``config_source``
-    names the config in messages about its ``sample:`` section.
+    names the config in messages about its ``sample:`` section; ``truths`` (name -> true value, where known)
+    are drawn on the corner plot.
     """
     init = read_result(init_path)
     if not init.get("free"):
@@ -345,7 +349,7 @@ def run_sample(data, config: dict, init_path, out_dir, *, overrides: dict | None
         problem, x0, out_dir, walkers=ss.walkers, steps=ss.steps, priors=priors, seed=ss.seed, resume=resume,
         progress=progress, batched=ss.batched, laplace=lap, final_problem=final_problem,
         checkpoint_seconds=ss.checkpoint_seconds, plots=plots, predictive_draws=ss.predictive_draws,
-        init_scale=ss.init_scale, extra=extra)
+        init_scale=ss.init_scale, extra=extra, truths=truths)
     summary["seconds_total"] = time.perf_counter() - t0
     write_text_atomic(Path(out_dir) / SUMMARY_FILE, dumps(summary))
     return summary

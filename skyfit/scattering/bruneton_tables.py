@@ -290,18 +290,21 @@ def _axis(f: Tensor, n: int) -> tuple[Tensor, Tensor]:
     return i0.long(), f - i0
 
 
-def interpolate(tables: list[Tensor] | tuple[Tensor, ...], indices: tuple[Tensor, ...]) -> list[Tensor]:
-    """Multilinear interpolation of tables sharing a grid, at continuous texel indices.
+def corner_plan(grid: Sequence[int], indices: tuple[Tensor, ...]) -> tuple[Tensor, Tensor, tuple[int, ...]]:
+    """Flat texel indices and weights of the 2^D corners of multilinear interpolation.
+
+    They depend on the query points and the grid only, so a precomputation that looks up
+    the same points in several tables (every scattering order) computes them once
+    (:func:`interpolate_planned`).
 
     Args:
-        tables: each of shape (*grid, C) (grid of D axes, any channel count C, same grid).
+        grid: the D texel counts of the tables.
         indices: D tensors of continuous texel indices, each of shape (...); clamped to
             [0, n - 1] per axis (GL CLAMP_TO_EDGE).
 
     Returns:
-        One tensor of shape (..., C) per table.
+        (index (n, 2^D) long, weight (n, 2^D), batch shape) with n the number of points.
     """
-    grid = tables[0].shape[:-1]
     D = len(grid)
     if len(indices) != D:
         raise ValueError(f"interpolate: {len(indices)} index tensors for a {D}-D grid")
@@ -320,9 +323,42 @@ def interpolate(tables: list[Tensor] | tuple[Tensor, ...], indices: tuple[Tensor
         else:
             ix = (ix.unsqueeze(-1) + ix_d.view(n, 1, 2)).reshape(n, -1)
             w = (w.unsqueeze(-1) * w_d.view(n, 1, 2)).reshape(n, -1)
-    flat_ix = ix.reshape(-1)
+    return ix, w, tuple(batch)
+
+
+def interpolate_planned(tables: list[Tensor] | tuple[Tensor, ...], index: Tensor, weight: Tensor, batch: tuple[int, ...]) -> list[Tensor]:
+    """Multilinear interpolation with the corners of :func:`corner_plan` (any integer dtype of index).
+
+    Returns one tensor of shape (*batch, C) per table of shape (*grid, C).
+    """
+    n, k = index.shape
+    flat_ix = index.reshape(-1)
     outs = []
     for t in tables:
-        v = t.reshape(-1, t.shape[-1]).index_select(0, flat_ix).view(n, ix.shape[1], t.shape[-1])
-        outs.append(torch.bmm(w.unsqueeze(1), v).reshape(*batch, t.shape[-1]))
+        v = t.reshape(-1, t.shape[-1]).index_select(0, flat_ix).view(n, k, t.shape[-1])
+        outs.append(torch.bmm(weight.unsqueeze(1), v).reshape(*batch, t.shape[-1]))
     return outs
+
+
+def interpolate(tables: list[Tensor] | tuple[Tensor, ...], indices: tuple[Tensor, ...]) -> list[Tensor]:
+    """Multilinear interpolation of tables sharing a grid, at continuous texel indices.
+
+    Args:
+        tables: each of shape (*grid, C) (grid of D axes, any channel count C, same grid).
+        indices: D tensors of continuous texel indices, each of shape (...); clamped to
+            [0, n - 1] per axis (GL CLAMP_TO_EDGE).
+
+    Returns:
+        One tensor of shape (..., C) per table.
+    """
+    ix, w, batch = corner_plan(tables[0].shape[:-1], indices)
+    return interpolate_planned(tables, ix, w, batch)
+
+
+def grid_coordinate(index: Tensor, n: int) -> Tensor:
+    """A continuous texel index on an axis of n texels as ``grid_sample``'s coordinate (align_corners=True).
+
+    ``grid_sample(..., mode="bilinear", padding_mode="border", align_corners=True)`` at these
+    coordinates is the edge-clamped multilinear interpolation of :func:`interpolate` (to rounding).
+    """
+    return index * (2.0 / (n - 1)) - 1.0

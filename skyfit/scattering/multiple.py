@@ -47,23 +47,31 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 import time
 from typing import Callable, NamedTuple
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
+from tqdm import tqdm
 
 from ..atmosphere import Atmosphere
 from ..atmosphere.profiles import profile_densities
 from ..geometry import distance_to_bottom, distance_to_top, ray_hits_ground, safe_sqrt
 from .bruneton_tables import (
     MU_S_MIN_DEFAULT,
+    ScatteringTexels,
     TableSizes,
+    corner_plan,
     extinction_matrix3,
+    grid_coordinate,
     interpolate,
+    interpolate_planned,
     irradiance_index,
     irradiance_texel_params,
+    mu_s_unit,
     scattering_index,
     scattering_texel_params,
     transmittance_index,
@@ -328,19 +336,140 @@ def _group_ray_samples(ctx: _Ctx, r, mu, g, mus, nu, i: int, j: int, x: Tensor):
     return dist, d, col_v, r_d, mu_d, mus_d, nn
 
 
-def _single_scattering_table(ctx, texels, quad: Quadrature, chunk_bytes: float, use_ckpt: bool) -> tuple[Tensor, Tensor]:
+class _Geometry(NamedTuple):
+    """Parameter-free quantities of the precomputation, computed once and shared by every order.
+
+    The texel coordinates of the lookups, their interpolation corners and the view vectors
+    of Delta J depend on the table sizes, the radii and the quadrature only (never on a
+    fitted parameter), so a float64 table is the same whether they are computed once or
+    per order; memory: :func:`geometry_bytes`.
+    """
+
+    texels: ScatteringTexels
+    rays: tuple[Tensor, ...]  # _view_groups: r, mu, hits (G, 1); mu_s, nu (G, T)
+    density_dirs: tuple[Tensor, Tensor]  # om (D, 3), dom (D,)
+    density_nu: Tensor  # (G2, D) cosine between the incident direction and the sun
+    density_plan: tuple[Tensor, Tensor, tuple[int, ...]]  # scattering corners of the (G2, D) incident directions
+    ground_plan: tuple[Tensor, Tensor, tuple[int, ...]]  # irradiance corners where those rays meet the ground
+    ground_rays: tuple[Tensor, Tensor, Tensor]  # r, mu, hits of the incident rays, (G2, D)
+    views: Tensor  # (G2, MU NU, 3) view directions of each (r, mu_s) group in the sun frame
+    irradiance_nu: Tensor  # (n_irr, Dh)
+    irradiance_plan: tuple[Tensor, Tensor, tuple[int, ...]]  # scattering corners of the hemisphere directions
+    irradiance_weight: Tensor  # (Dh,) omega_z d omega
+
+
+def _plan(ctx: _Ctx, r, mu, mu_s, nu, hits) -> tuple[Tensor, Tensor, tuple[int, ...]]:
+    """Corners of a scattering-table lookup (int32 indices when they fit: half the memory)."""
+    ix, w, batch = corner_plan(ctx.sizes.scattering_shape, _scat_index(ctx, r, mu, mu_s, nu, hits))
+    return (ix.to(torch.int32) if ix.numel() and int(ix.max()) < 2**31 else ix), w, batch
+
+
+def _geometry(ctx: _Ctx, texels: ScatteringTexels, quad: Quadrature, orders: bool = True) -> _Geometry:
+    """The parameter-free part of every order's lookups (see :class:`_Geometry`); only the view
+    rays when ``orders`` is False (single scattering only)."""
+    atm, sizes = ctx.atm, ctx.sizes
+    dtype, device = atm.dtype, atm.device
+    R, MU, MUS, NU = sizes.scattering_shape
+    if not orders:
+        return _Geometry(texels, _view_groups(texels), *([None] * 9))
+    with torch.no_grad():
+        # Delta J: incident directions of each (r, mu_s) group, g = ir * MUS + ims
+        om, dom = _density_directions(quad, dtype, device)
+        n_d = om.shape[0]
+        r_g = texels.r[:, 0, :, 0].reshape(-1, 1)
+        mus_g = texels.mu_s[:, 0, :, 0].reshape(-1, 1)
+        sin_s = safe_sqrt(1.0 - mus_g * mus_g)
+        cz = om[:, 2].expand(r_g.shape[0], n_d)
+        nu1 = torch.clamp(om[:, 0] * sin_s + om[:, 2] * mus_g, -1.0, 1.0)
+        rr, ss = r_g.expand_as(nu1), mus_g.expand_as(nu1)
+        hits = ray_hits_ground(rr, cz, atm.bottom_radius)
+        density_plan = _plan(ctx, rr, cz, ss, nu1, hits)
+        d_g = torch.where(hits, distance_to_bottom(rr, cz, atm.bottom_radius), torch.zeros_like(cz))
+        r_d = torch.clamp(torch.sqrt(torch.clamp_min(d_g * d_g + 2.0 * rr * cz * d_g + rr * rr, 0.0)), atm.bottom_radius, atm.top_radius)
+        mus_ground = torch.clamp((rr * ss + d_g * nu1) / r_d, -1.0, 1.0)
+        ground_plan = corner_plan((sizes.irradiance_r, sizes.irradiance_mu_s),
+                                  irradiance_index(torch.full_like(mus_ground, atm.bottom_radius), mus_ground,
+                                                   atm.bottom_radius, atm.top_radius, sizes))
+        # view directions of each group's (mu, nu) texels in the sun frame
+        mu = texels.mu[:, :, 0, :].reshape(R, 1, MU * NU)  # (R, 1, V)
+        nu = texels.nu.permute(0, 2, 1, 3).reshape(R, MUS, MU * NU)
+        ss3 = texels.mu_s[0, 0, :, 0].reshape(1, MUS, 1)
+        sin3 = safe_sqrt(1.0 - ss3 * ss3)
+        safe_sin = torch.where(sin3 > 0, sin3, torch.ones_like(sin3))
+        vx = torch.where(sin3 > 0, (nu - mu * ss3) / safe_sin, torch.zeros_like(nu))
+        mu = mu.expand_as(vx)
+        vy = safe_sqrt(1.0 - mu * mu - vx * vx)
+        views = torch.stack([vx, vy, mu], -1).reshape(R * MUS, MU * NU, 3)
+        # indirect irradiance: hemisphere directions of each irradiance texel
+        r_i, mus_i = irradiance_texel_params(atm.bottom_radius, atm.top_radius, sizes, dtype, device)
+        r_i, mus_i = r_i.reshape(-1, 1), mus_i.reshape(-1, 1)
+        oz, ox, dom_h = _irradiance_directions(quad, dtype, device)
+        sin_i = safe_sqrt(1.0 - mus_i * mus_i)
+        nu_i = torch.clamp(ox * sin_i + oz * mus_i, -1.0, 1.0)
+        rr_i, ss_i = r_i.expand_as(nu_i), mus_i.expand_as(nu_i)
+        irradiance_plan = _plan(ctx, rr_i, oz.expand_as(nu_i), ss_i, nu_i, torch.zeros_like(nu_i, dtype=torch.bool))
+    return _Geometry(texels, _view_groups(texels), (om, dom), nu1, density_plan, ground_plan, (rr, cz, hits), views,
+                     nu_i, irradiance_plan, oz * dom_h)
+
+
+def geometry_bytes(geo: _Geometry) -> int:
+    """Memory held by the shared geometry of :func:`precompute` (interpolation corners mostly). [bytes]"""
+    seen: dict[int, int] = {}
+
+    def add(t):
+        if isinstance(t, Tensor):
+            seen[id(t)] = t.numel() * t.element_size()
+        elif isinstance(t, (tuple, list)):
+            for u in t:
+                add(u)
+        elif isinstance(t, ScatteringTexels):
+            add([t.r, t.mu, t.mu_s, t.nu, t.hits_ground])
+
+    add(list(geo))
+    return sum(seen.values())
+
+
+def _slice_plan(plan, i: int, j: int, per: int):
+    """Rows of a corner plan for groups i:j of ``per`` points each."""
+    ix, w, batch = plan
+    return ix[i * per : j * per], w[i * per : j * per], (j - i, *batch[1:])
+
+
+def _planned_order_radiance(ctx: _Ctx, tables, order: int, plan, nu: Tensor) -> Tensor:
+    """:func:`_order_radiance` with precomputed corners, (..., W)."""
+    atm = ctx.atm
+    if order == 1:
+        s_r, s_m = interpolate_planned(list(tables), *plan)
+        return s_r * rayleigh_phase(nu).unsqueeze(-1) + s_m * mie_phase(nu, atm.mie_g, atm.mie_phase).unsqueeze(-1)
+    return interpolate_planned(list(tables), *plan)[0]
+
+
+def _columns_sampled(ctx: _Ctx, r: Tensor, mu: Tensor) -> Tensor:
+    """:func:`_columns` by ``grid_sample`` (no corner arrays), r and mu broadcastable; shape (..., 3). [m]"""
+    sizes = ctx.sizes
+    i_r, i_mu = transmittance_index(r, mu, ctx.atm.bottom_radius, ctx.atm.top_radius, sizes)
+    batch = torch.broadcast_shapes(i_r.shape, i_mu.shape)
+    grid = torch.stack([grid_coordinate(i_mu, sizes.transmittance_mu).expand(batch),
+                        grid_coordinate(i_r, sizes.transmittance_r).expand(batch)], -1).reshape(1, -1, 1, 2)
+    tab = ctx.tc.permute(2, 0, 1).unsqueeze(0)  # (1, 3, n_r, n_mu)
+    out = F.grid_sample(tab, grid, mode="bilinear", padding_mode="border", align_corners=True)  # (1, 3, N, 1)
+    return out.reshape(3, -1).transpose(0, 1).reshape(*batch, 3)
+
+
+def _single_scattering_table(ctx, geo: _Geometry, quad: Quadrature, chunk_bytes: float, use_ckpt: bool) -> tuple[Tensor, Tensor]:
     """Single Rayleigh and Mie scattering without phase function (2017 ComputeSingleScattering).
 
     Trapezoid rule with ``quad.single_samples`` intervals from the texel's point to the
     nearest boundary; at each sample T(x, y) T(y, sun) (times the sun's visible fraction)
     times the density; times E_sun beta_s at the end. The view-ray quantities (sample
-    radii, T(x, y)) are shared by the MU_S x NU texels of each (r, mu).
+    radii, T(x, y)) are shared by the MU_S x NU texels of each (r, mu); T(y, sun) is a
+    bilinear ``grid_sample`` of the optical-length table.
     Shapes (R, MU, MU_S, NU, W) each. [W/(m^2 nm)]
     """
     atm = ctx.atm
     dtype, device = atm.dtype, atm.device
-    shape = texels.r.shape
-    r, mu, g, mus, nu = _view_groups(texels)
+    shape = geo.texels.r.shape
+    r, mu, g, mus, nu = geo.rays
     n_t = mus.shape[1]
     x, w = _trapezoid(quad.single_samples, dtype, device)
     n_w = atm.wavelengths.shape[0]
@@ -348,9 +477,8 @@ def _single_scattering_table(ctx, texels, quad: Quadrature, chunk_bytes: float, 
     def fn(i: int, j: int) -> Tensor:
         ext = extinction_matrix3(atm)
         dist, _, col_v, r_d, _, mus_d, _ = _group_ray_samples(ctx, r, mu, g, mus, nu, i, j, x)
-        r_dt = r_d[:, None, :].expand_as(mus_d)
-        col_s = _columns(ctx, r_dt, mus_d)  # (G, T, S, 3)
-        vis = sun_visible_fraction(r_dt, mus_d, atm.bottom_radius, atm.sun_angular_radius)
+        col_s = _columns_sampled(ctx, r_d[:, None, :], mus_d)  # (G, T, S, 3)
+        vis = sun_visible_fraction(r_d[:, None, :], mus_d, atm.bottom_radius, atm.sun_angular_radius)
         trans = torch.exp(-(col_v[:, None] + col_s) @ ext) * vis.unsqueeze(-1)  # (G, T, S, W)
         dens = profile_densities(r_d - atm.bottom_radius, atm, ozone=False)  # (G, S, 2)
         integ = torch.einsum("gsk,gtsw->gtkw", dens * (w * dist).unsqueeze(-1), trans)
@@ -358,7 +486,7 @@ def _single_scattering_table(ctx, texels, quad: Quadrature, chunk_bytes: float, 
         mie = integ[:, :, 1] * (atm.solar_irradiance * atm.mie_scattering)
         return torch.cat([ray, mie], dim=-1)  # (G, T, 2W)
 
-    step = _step(chunk_bytes, n_t * (quad.single_samples + 1) * (3 * n_w + 40), torch.finfo(dtype).bits // 8)
+    step = _step(chunk_bytes, n_t * (quad.single_samples + 1) * (3 * n_w + 24), torch.finfo(dtype).bits // 8)
     out = _chunked(fn, r.shape[0], step, use_ckpt)
     return out[..., :n_w].reshape(*shape, n_w), out[..., n_w:].reshape(*shape, n_w)
 
@@ -370,39 +498,32 @@ def _direct_irradiance_table(ctx, sizes: TableSizes) -> Tensor:
     return _direct_irradiance_from(ctx, r, mu_s)
 
 
-def _indirect_irradiance_table(ctx, tables, order: int, quad: Quadrature, chunk_bytes: float, use_ckpt: bool) -> Tensor:
-    """Delta E of ``order`` >= 1 bounces on a horizontal surface (2017 ComputeIndirectIrradiance).
-
-    Midpoint rule over the upper hemisphere: sum of L_order(r, omega_z, mu_s, omega . s) omega_z d omega.
-    Shape (n_r, n_mu_s, W). [W/(m^2 nm)]
-    """
-    atm, sizes = ctx.atm, ctx.sizes
-    dtype, device = atm.dtype, atm.device
-    r, mu_s = irradiance_texel_params(atm.bottom_radius, atm.top_radius, sizes, dtype, device)
-    shape = r.shape
-    r, mu_s = r.reshape(-1), mu_s.reshape(-1)
+def _irradiance_directions(quad: Quadrature, dtype, device) -> tuple[Tensor, Tensor, Tensor]:
+    """Midpoint rule over the upper hemisphere: (omega_z, omega_x, d omega), each (Dh,)."""
     nt, nph = quad.irradiance_theta, quad.irradiance_phi
     dth, dph = (math.pi / 2) / nt, (2 * math.pi) / nph
     th = (torch.arange(nt, dtype=dtype, device=device) + 0.5) * dth
     ph = (torch.arange(nph, dtype=dtype, device=device) + 0.5) * dph
     th, ph = torch.meshgrid(th, ph, indexing="ij")
-    oz = torch.cos(th).reshape(-1)
-    ox = (torch.sin(th) * torch.cos(ph)).reshape(-1)
-    dom = (torch.sin(th) * dth * dph).reshape(-1)
+    return torch.cos(th).reshape(-1), (torch.sin(th) * torch.cos(ph)).reshape(-1), (torch.sin(th) * dth * dph).reshape(-1)
+
+
+def _indirect_irradiance_table(ctx, geo: _Geometry, tables, order: int, quad: Quadrature, chunk_bytes: float, use_ckpt: bool) -> Tensor:
+    """Delta E of ``order`` >= 1 bounces on a horizontal surface (2017 ComputeIndirectIrradiance).
+
+    Midpoint rule over the upper hemisphere: sum of L_order(r, omega_z, mu_s, omega . s) omega_z d omega,
+    with the lookups' corners from ``geo``. Shape (n_r, n_mu_s, W). [W/(m^2 nm)]
+    """
+    atm, sizes = ctx.atm, ctx.sizes
+    n_i, n_h = geo.irradiance_nu.shape
     n_w = atm.wavelengths.shape[0]
 
     def fn(i: int, j: int) -> Tensor:
-        rr, ss = r[i:j, None], mu_s[i:j, None]
-        sin_s = safe_sqrt(1.0 - ss * ss)
-        nu = torch.clamp(ox * sin_s + oz * ss, -1.0, 1.0)
-        rr, ss = rr.expand_as(nu), ss.expand_as(nu)
-        mu = oz.expand_as(nu)
-        hits = torch.zeros_like(nu, dtype=torch.bool)
-        L = _order_radiance(ctx, tables, order, rr, mu, ss, nu, hits)  # (n, D, W)
-        return torch.einsum("ndw,d->nw", L, oz * dom)
+        L = _planned_order_radiance(ctx, tables, order, _slice_plan(geo.irradiance_plan, i, j, n_h), geo.irradiance_nu[i:j])
+        return torch.einsum("ndw,d->nw", L, geo.irradiance_weight)
 
-    step = _step(chunk_bytes, nt * nph * (20 * n_w + 40), torch.finfo(dtype).bits // 8)
-    return _chunked(fn, r.shape[0], step, use_ckpt).reshape(*shape, n_w)
+    step = _step(chunk_bytes, n_h * (40 * n_w + 40), torch.finfo(atm.dtype).bits // 8)
+    return _chunked(fn, n_i, step, use_ckpt).reshape(sizes.irradiance_r, sizes.irradiance_mu_s, n_w)
 
 
 def _density_directions(quad: Quadrature, dtype, device) -> tuple[Tensor, Tensor]:
@@ -416,92 +537,160 @@ def _density_directions(quad: Quadrature, dtype, device) -> tuple[Tensor, Tensor
     return om, (torch.sin(th) * dth * dph).reshape(-1)
 
 
+_PHASE_BLOCK = 1 << 20
+"""Elements of the (view x incident) phase matrix evaluated at once in Delta J: small enough to
+stay in cache, large enough that per-call overhead does not matter (measured: docs/benchmarks.md)."""
+
+
+def _ground_factor(ctx: _Ctx, geo: _Geometry) -> Tensor:
+    """T(x, ground) alpha / pi for the incident rays of Delta J that hit the ground (0 elsewhere), (G2, D, W).
+
+    Depends on the atmosphere but not on the order: computed once per precomputation.
+    """
+    atm = ctx.atm
+    rr, cz, hits = geo.ground_rays
+    d_g = torch.where(hits, distance_to_bottom(rr, cz, atm.bottom_radius), torch.zeros_like(cz))
+    col_g, _, _ = _segment_columns(ctx, rr, cz, d_g, hits)
+    return hits.unsqueeze(-1) * torch.exp(-col_g @ extinction_matrix3(atm)) * (atm.ground_albedo / math.pi)
+
+
+def _mie_phase_parts(g: Tensor, name: str):
+    """(f, k) with ``mie_phase(c, g, name) = k f(c)`` (the same arithmetic, k applied after the sum).
+
+    f evaluates only the branch of the non-cancelling ``1 + g^2 - 2 g c`` that a scalar g selects;
+    a g with dimensions falls back to :func:`mie_phase` itself (k = 1).
+    """
+    if g.dim() or name not in ("cornette_shanks", "henyey_greenstein"):
+        return (lambda c: mie_phase(c, g, name)), 1.0
+    if bool(g >= 0):
+        q = lambda c: (1.0 - g) ** 2 + 2.0 * g * (1.0 - c)  # noqa: E731
+    else:
+        q = lambda c: (1.0 + g) ** 2 - 2.0 * g * (1.0 + c)  # noqa: E731
+    if name == "cornette_shanks":
+        return (lambda c: (1.0 + c * c) / q(c) ** 1.5), 3.0 / (8.0 * math.pi) * (1.0 - g * g) / (2.0 + g * g)
+    return (lambda c: 1.0 / q(c) ** 1.5), (1.0 / (4.0 * math.pi)) * (1.0 - g * g)
+
+
 def _scattering_density_table(
-    ctx, texels, prev_tables, order: int, prev_irradiance: Tensor, quad: Quadrature, chunk_bytes: float, use_ckpt: bool
+    ctx, geo: _Geometry, prev_tables, order: int, prev_irradiance: Tensor, ground: Tensor, quad: Quadrature,
+    chunk_bytes: float, use_ckpt: bool,
 ) -> Tensor:
     """Delta J of ``order`` >= 2 (2017 ComputeScatteringDensity), shape (R, MU, MU_S, NU, W). [W/(m^3 sr nm)]
 
     J(r, mu, mu_s, nu) = sum_i L_in(r, mu_s, omega_i) [beta_R rho_R(r) P_R(omega . omega_i)
     + beta_M rho_M(r) P_M(omega . omega_i)] d omega_i  (2008 eq. 7), with L_in the radiance of
     order - 1 bounces from the tables plus, for omega_i towards the ground, the ground's
-    Lambertian reflection T alpha / pi Delta E_{order-2} (2008 Algorithm 4.1, first line of the loop).
+    Lambertian reflection T alpha / pi Delta E_{order-2} (2008 Algorithm 4.1, first line of the loop;
+    ``ground`` is T alpha / pi, :func:`_ground_factor`).
     The incident directions are sampled in the sun's frame, so L_in is evaluated once per
-    (r, mu_s) and shared by all view directions (mu, nu).
+    (r, mu_s) and shared by all view directions (mu, nu). The Rayleigh phase is a quadratic in
+    the view vector v: sum_i P_R(v . omega_i) L_i d omega_i = 3 / (16 pi) (m_0 + v^T M v) with the
+    moments m_0 = sum L_i d omega_i, M = sum omega_i omega_i^T L_i d omega_i, so only the Mie
+    phase needs the (view x incident) matrix, evaluated in cache-sized blocks.
     """
     atm, sizes = ctx.atm, ctx.sizes
-    dtype, device = atm.dtype, atm.device
     R, MU, MUS, NU = sizes.scattering_shape
-    om, dom = _density_directions(quad, dtype, device)  # (D, 3), (D,)
+    om, dom = geo.density_dirs
     n_d = om.shape[0]
+    n_v = MU * NU
     n_w = atm.wavelengths.shape[0]
-    # groups (r, mu_s), flattened as g = ir * MUS + ims
-    r_g = texels.r[:, 0, :, 0].reshape(-1)
-    mus_g = texels.mu_s[:, 0, :, 0].reshape(-1)
-    mu_v = texels.mu[:, :, 0, :]  # (R, MU, NU), same for every mu_s
-    nu_v = texels.nu.permute(0, 2, 1, 3)  # (R, MUS, MU, NU)
+    # Rayleigh moments: [1, x^2, y^2, z^2, 2xy, 2xz, 2yz] of the incident directions, weighted by d omega
+    ox, oy, oz = om.unbind(-1)
+    quad_o = torch.stack([torch.ones_like(ox), ox * ox, oy * oy, oz * oz, 2 * ox * oy, 2 * ox * oz, 2 * oy * oz], 0) * dom  # (7, D)
+    r_g = geo.texels.r[:, 0, :, 0].reshape(-1)
+    block = max(1, _PHASE_BLOCK // (n_v * n_d))  # groups per phase block
+    sub_v = n_v if _PHASE_BLOCK >= n_v * n_d else max(1, _PHASE_BLOCK // n_d)
 
     def fn(i: int, j: int) -> Tensor:
-        ext = extinction_matrix3(atm)
-        rr, ss = r_g[i:j, None], mus_g[i:j, None]  # (G, 1)
-        sin_s = safe_sqrt(1.0 - ss * ss)
-        cz = om[:, 2].expand(rr.shape[0], n_d)
-        nu1 = torch.clamp(om[:, 0] * sin_s + om[:, 2] * ss, -1.0, 1.0)  # (G, D)
-        rr_, ss_ = rr.expand_as(nu1), ss.expand_as(nu1)
-        hits = ray_hits_ground(rr_, cz, atm.bottom_radius)
-        L = _order_radiance(ctx, prev_tables, order - 1, rr_, cz, ss_, nu1, hits)  # (G, D, W)
-        # Light of order - 1 bounces whose last bounce is on the ground.
-        d_g = torch.where(hits, distance_to_bottom(rr_, cz, atm.bottom_radius), torch.zeros_like(cz))
-        col_g, r_d, _ = _segment_columns(ctx, rr_, cz, d_g, hits)
-        mus_ground = torch.clamp((rr_ * ss_ + d_g * nu1) / r_d, -1.0, 1.0)
-        e_g = interpolate([prev_irradiance], irradiance_index(torch.full_like(mus_ground, atm.bottom_radius), mus_ground,
-                                                              atm.bottom_radius, atm.top_radius, sizes))[0]
-        L = L + hits.unsqueeze(-1) * torch.exp(-col_g @ ext) * (atm.ground_albedo / math.pi) * e_g
-        # View directions of the group's texels in the sun frame.
-        ir = torch.div(torch.arange(i, j, device=device), MUS, rounding_mode="floor")
-        ims = torch.arange(i, j, device=device) % MUS
-        mu = mu_v[ir].reshape(j - i, MU * NU)  # (G, V)
-        nu = nu_v[ir, ims].reshape(j - i, MU * NU)
-        safe_sin = torch.where(sin_s > 0, sin_s, torch.ones_like(sin_s))
-        vx = torch.where(sin_s > 0, (nu - mu * ss) / safe_sin, torch.zeros_like(nu))
-        vy = safe_sqrt(1.0 - mu * mu - vx * vx)
-        cosang = vx.unsqueeze(-1) * om[:, 0] + vy.unsqueeze(-1) * om[:, 1] + mu.unsqueeze(-1) * om[:, 2]  # (G, V, D)
-        cosang = torch.clamp(cosang, -1.0, 1.0)
-        dens = profile_densities(rr[:, 0] - atm.bottom_radius, atm, ozone=False)  # (G, 2)
-        j_r = torch.bmm(rayleigh_phase(cosang) * dom, L)  # (G, V, W)
-        j_m = torch.bmm(mie_phase(cosang, atm.mie_g, atm.mie_phase) * dom, L)
-        out = j_r * (dens[:, 0, None, None] * atm.rayleigh_scattering) + j_m * (dens[:, 1, None, None] * atm.mie_scattering)
-        return out  # (G, V, W)
+        L = _planned_order_radiance(ctx, prev_tables, order - 1, _slice_plan(geo.density_plan, i, j, n_d), geo.density_nu[i:j])
+        e_g = interpolate_planned([prev_irradiance], *_slice_plan(geo.ground_plan, i, j, n_d))[0]
+        L = L + ground[i:j] * e_g  # (G, D, W)
+        v = geo.views[i:j]  # (G, V, 3)
+        vx, vy, vz = v.unbind(-1)
+        quad_v = torch.stack([torch.ones_like(vx), vx * vx, vy * vy, vz * vz, vx * vy, vx * vz, vy * vz], -1)  # (G, V, 7)
+        j_r = (3.0 / (16.0 * math.pi)) * torch.bmm(quad_v, torch.matmul(quad_o, L))  # (G, V, W)
+        Ld = L * dom.unsqueeze(-1)
+        phase, k_m = _mie_phase_parts(atm.mie_g, atm.mie_phase)
+        parts = []
+        for a in range(0, j - i, block):
+            b = min(a + block, j - i)
+            rows = []
+            for c in range(0, n_v, sub_v):
+                e = min(c + sub_v, n_v)
+                cosang = torch.clamp(torch.matmul(v[a:b, c:e], om.T), -1.0, 1.0)  # (g, v, D)
+                rows.append(torch.bmm(phase(cosang), Ld[a:b]))
+            parts.append(torch.cat(rows, 1) if len(rows) > 1 else rows[0])
+        j_m = (torch.cat(parts, 0) if len(parts) > 1 else parts[0]) * k_m
+        dens = profile_densities(r_g[i:j] - atm.bottom_radius, atm, ozone=False)  # (G, 2)
+        return j_r * (dens[:, 0, None, None] * atm.rayleigh_scattering) + j_m * (dens[:, 1, None, None] * atm.mie_scattering)
 
-    step = _step(chunk_bytes, MU * NU * n_d * 4 + n_d * 40 * n_w, torch.finfo(dtype).bits // 8)
+    step = _step(chunk_bytes, n_d * (16 * 2 + 20 * n_w) + n_v * (12 + 4 * n_w), torch.finfo(atm.dtype).bits // 8)
     out = _chunked(fn, R * MUS, step, use_ckpt)  # (R*MUS, MU*NU, W)
     return out.reshape(R, MUS, MU, NU, n_w).permute(0, 2, 1, 3, 4).contiguous()
 
 
-def _multiple_scattering_table(ctx, texels, density: Tensor, quad: Quadrature, chunk_bytes: float, use_ckpt: bool) -> Tensor:
+def _view_transmittance(ctx: _Ctx, geo: _Geometry, quad: Quadrature) -> Tensor:
+    """T(x, y) times the trapezoid weight at the Delta S samples of every view ray, (G, S, W).
+
+    Depends on the atmosphere but not on the order: computed once per precomputation.
+    """
+    atm = ctx.atm
+    r, mu, g, mus, nu = geo.rays
+    x, w = _trapezoid(quad.multiple_samples, atm.dtype, atm.device)
+    dist = _distance_to_boundary(r, mu, g, atm)
+    d = dist * x
+    col_v, _, _ = _segment_columns(ctx, r.expand_as(d), mu.expand_as(d), d, g.expand_as(d))
+    return torch.exp(-col_v @ extinction_matrix3(atm)) * (w * dist).unsqueeze(-1)
+
+
+def _multiple_scattering_table(ctx, geo: _Geometry, density: Tensor, t_view: Tensor, quad: Quadrature,
+                               chunk_bytes: float, use_ckpt: bool) -> Tensor:
     """Delta S of one order from its Delta J (2017 ComputeMultipleScattering), (R, MU, MU_S, NU, W).
 
     Trapezoid rule with ``quad.multiple_samples`` intervals of T(x, y) Delta J(y, v, s)
-    from the texel's point to the nearest boundary (2008 eq. 11), T(x, y) shared by the
-    MU_S x NU texels of each (r, mu). [W/(m^2 sr nm)]
+    from the texel's point to the nearest boundary (2008 eq. 11), T(x, y) (``t_view``, with
+    the weights) shared by the MU_S x NU texels of each (r, mu). The 4-D lookup is separable:
+    the sample's (r, mu) depend on the view ray only, so Delta J is first interpolated in
+    (r, mu) at the G x S samples for all its MU_S x NU x W values at once (a bilinear
+    ``grid_sample`` with MU_S NU W channels), weighted by T(x, y), then in (mu_s, nu) at the
+    T texels of each sample (a second bilinear ``grid_sample``) and summed over the samples:
+    8 corners per sample and texel instead of 16, and no corner arrays. [W/(m^2 sr nm)]
     """
-    atm = ctx.atm
+    atm, sizes = ctx.atm, ctx.sizes
+    R, MU, MUS, NU = sizes.scattering_shape
     dtype, device = atm.dtype, atm.device
-    shape = texels.r.shape
-    r, mu, g, mus, nu = _view_groups(texels)
+    r, mu, g, mus, nu = geo.rays
     n_t = mus.shape[1]
-    x, w = _trapezoid(quad.multiple_samples, dtype, device)
+    x, _ = _trapezoid(quad.multiple_samples, dtype, device)
+    n_s = x.shape[0]
     n_w = atm.wavelengths.shape[0]
+    n_c = MUS * NU * n_w
+    dj = density.reshape(R, MU, n_c).permute(2, 0, 1).unsqueeze(0)  # (1, MUS NU W, R, MU)
+    gx_nu = grid_coordinate((nu + 1.0) / 2.0 * (NU - 1), NU)  # (G, T), nu's index as in scattering_index
 
     def fn(i: int, j: int) -> Tensor:
-        ext = extinction_matrix3(atm)
-        dist, _, col_v, r_d, mu_d, mus_d, nn = _group_ray_samples(ctx, r, mu, g, mus, nu, i, j, x)
-        t_view = torch.exp(-col_v @ ext) * (w * dist).unsqueeze(-1)  # (G, S, W), with the weights
-        idx = _scat_index(ctx, r_d[:, None, :], mu_d[:, None, :], mus_d, nn, g[i:j, :, None])
-        dj = interpolate([density], idx)[0]  # (G, T, S, W)
-        return torch.einsum("gtsw,gsw->gtw", dj, t_view)
+        n_g = j - i
+        with torch.no_grad():  # geometry
+            rr, mm, gg = r[i:j], mu[i:j], g[i:j]
+            dist = _distance_to_boundary(rr, mm, gg, atm)
+            d = dist * x  # (G, S)
+            r_d = torch.clamp(torch.sqrt(torch.clamp_min(d * d + 2.0 * rr * mm * d + rr * rr, 0.0)), atm.bottom_radius, atm.top_radius)
+            mu_d = torch.clamp((rr * mm + d) / r_d, -1.0, 1.0)
+            i_r, i_mu, _, _ = scattering_index(r_d, mu_d, mus[i:j, :1], nu[i:j, :1], gg.expand_as(d),
+                                               atm.bottom_radius, atm.top_radius, ctx.mu_s_min, sizes)
+            grid_rm = torch.stack([grid_coordinate(i_mu, MU), grid_coordinate(i_r, R)], -1).unsqueeze(0)  # (1, G, S, 2)
+            ss, nn = mus[i:j, None, :], nu[i:j, None, :]  # (G, 1, T)
+            mus_d = torch.clamp((rr[:, :, None] * ss + d[:, :, None] * nn) / r_d[:, :, None], -1.0, 1.0)  # (G, S, T)
+            gy = grid_coordinate(mu_s_unit(mus_d, atm.bottom_radius, atm.top_radius, ctx.mu_s_min) * (MUS - 1), MUS)
+            grid_sn = torch.stack([gx_nu[i:j, None, :].expand_as(gy), gy], -1).reshape(n_g * n_s, n_t, 1, 2)
+        a = F.grid_sample(dj, grid_rm, mode="bilinear", padding_mode="border", align_corners=True)  # (1, MUS NU W, G, S)
+        a = a.reshape(MUS, NU, n_w, n_g, n_s).permute(3, 4, 2, 0, 1) * t_view[i:j, :, :, None, None]  # (G, S, W, MUS, NU)
+        b = F.grid_sample(a.reshape(n_g * n_s, n_w, MUS, NU), grid_sn, mode="bilinear", padding_mode="border",
+                          align_corners=True)  # (G S, W, T, 1)
+        return b.reshape(n_g, n_s, n_w, n_t).sum(1).transpose(1, 2)  # (G, T, W)
 
-    step = _step(chunk_bytes, n_t * (quad.multiple_samples + 1) * (3 * n_w + 60), torch.finfo(dtype).bits // 8)
-    return _chunked(fn, r.shape[0], step, use_ckpt).reshape(*shape, n_w)
+    step = _step(chunk_bytes, n_s * (3 * n_c + n_t * (6 + 2 * n_w)), torch.finfo(dtype).bits // 8)
+    return _chunked(fn, r.shape[0], step, use_ckpt).reshape(R, MU, MUS, NU, n_w)
 
 
 def precompute(
@@ -513,8 +702,14 @@ def precompute(
     keep_orders: bool = False,
     chunk_bytes: float | None = None,
     checkpointing: bool | None = None,
+    progress: bool | None = None,
 ) -> PrecomputedAtmosphere:
     """Bruneton & Neyret 2008 Algorithm 4.1: transmittance, irradiance and scattering tables.
+
+    The texel coordinates and interpolation corners of every lookup are computed once and
+    shared by all orders (they depend on the sizes and radii only); the result equals
+    :func:`skyfit.scattering.bruneton_reference.precompute_reference`, which recomputes them,
+    to rounding (docs/benchmarks.md: speed, memory and the measured difference).
 
     Args:
         atm: the atmosphere; every table follows its dtype and device and is differentiable
@@ -528,9 +723,11 @@ def precompute(
         chunk_bytes: approximate working memory per chunk of texels, which bounds peak memory;
             default 128 MB on CPU, 2 GB on CUDA (with 128 MB chunks an H200 took 40 s instead of 4 s).
         checkpointing: checkpoint each chunk; default: when gradients are being recorded.
+        progress: a tqdm bar over the stages on stderr; default (None): on when stderr is a
+            terminal, shown once the precomputation has taken 2 s.
 
     Returns:
-        The tables, with ``timings`` in seconds per stage.
+        The tables, with ``timings`` in seconds per stage (``geometry``: the shared lookup corners).
     """
     if not (isinstance(orders, int) and orders >= 1):
         raise ValueError(f"orders must be an integer >= 1, got {orders!r}")
@@ -545,6 +742,8 @@ def precompute(
     sync = torch.cuda.synchronize if atm.device.type == "cuda" else (lambda: None)
     timings: dict[str, float] = {}
     t_all = t0 = time.perf_counter()
+    bar = tqdm(total=3 + 3 * (orders - 1), desc="Bruneton tables", unit="stage", file=sys.stderr, leave=False,
+               disable=not (sys.stderr.isatty() if progress is None else progress), delay=2.0 if progress is None else 0.0)
 
     def lap(name: str) -> None:
         nonlocal t0
@@ -552,35 +751,44 @@ def precompute(
         t = time.perf_counter()
         timings[name] = t - t0
         t0 = t
+        if name != "geometry":
+            bar.set_postfix_str(name, refresh=False)
+            bar.update()
 
-    tc = transmittance_columns_table(atm, sizes, quad.transmittance_samples, chunk_bytes, checkpointing)
-    ctx = _Ctx(tc, atm, sizes, mu_s_min)
-    lap("transmittance")
-    direct = _direct_irradiance_table(ctx, sizes)
-    lap("direct_irradiance")
-    texels = scattering_texel_params(atm.bottom_radius, atm.top_radius, mu_s_min, sizes, atm.dtype, atm.device)
-    s_r, s_m = _single_scattering_table(ctx, texels, quad, chunk_bytes, checkpointing)
-    lap("single_scattering")
-    irradiance = torch.zeros_like(direct)
-    multiple = None
-    kept_s: list[Tensor] = []
-    kept_e: list[Tensor] = []
-    prev_tables: tuple[Tensor, ...] = (s_r, s_m)
-    prev_e = direct
-    for n in range(2, orders + 1):
-        dj = _scattering_density_table(ctx, texels, prev_tables, n, prev_e, quad, chunk_bytes, checkpointing)
-        lap(f"order_{n}_density")
-        prev_e = _indirect_irradiance_table(ctx, prev_tables, n - 1, quad, chunk_bytes, checkpointing)
-        irradiance = irradiance + prev_e
-        lap(f"order_{n}_irradiance")
-        ds = _multiple_scattering_table(ctx, texels, dj, quad, chunk_bytes, checkpointing)
-        del dj
-        multiple = ds if multiple is None else multiple + ds
-        lap(f"order_{n}_scattering")
-        if keep_orders:
-            kept_s.append(ds)
-            kept_e.append(prev_e)
-        prev_tables = (ds,)
+    with bar:
+        tc = transmittance_columns_table(atm, sizes, quad.transmittance_samples, chunk_bytes, checkpointing)
+        ctx = _Ctx(tc, atm, sizes, mu_s_min)
+        lap("transmittance")
+        direct = _direct_irradiance_table(ctx, sizes)
+        lap("direct_irradiance")
+        texels = scattering_texel_params(atm.bottom_radius, atm.top_radius, mu_s_min, sizes, atm.dtype, atm.device)
+        geo = _geometry(ctx, texels, quad, orders >= 2)
+        lap("geometry")
+        s_r, s_m = _single_scattering_table(ctx, geo, quad, chunk_bytes, checkpointing)
+        lap("single_scattering")
+        irradiance = torch.zeros_like(direct)
+        multiple = None
+        kept_s: list[Tensor] = []
+        kept_e: list[Tensor] = []
+        prev_tables: tuple[Tensor, ...] = (s_r, s_m)
+        prev_e = direct
+        if orders >= 2:  # order-independent factors of the atmosphere
+            ground = _ground_factor(ctx, geo)
+            t_view = _view_transmittance(ctx, geo, quad)
+        for n in range(2, orders + 1):
+            dj = _scattering_density_table(ctx, geo, prev_tables, n, prev_e, ground, quad, chunk_bytes, checkpointing)
+            lap(f"order_{n}_density")
+            prev_e = _indirect_irradiance_table(ctx, geo, prev_tables, n - 1, quad, chunk_bytes, checkpointing)
+            irradiance = irradiance + prev_e
+            lap(f"order_{n}_irradiance")
+            ds = _multiple_scattering_table(ctx, geo, dj, t_view, quad, chunk_bytes, checkpointing)
+            del dj
+            multiple = ds if multiple is None else multiple + ds
+            lap(f"order_{n}_scattering")
+            if keep_orders:
+                kept_s.append(ds)
+                kept_e.append(prev_e)
+            prev_tables = (ds,)
     timings["total"] = time.perf_counter() - t_all
     return PrecomputedAtmosphere(
         atm=atm,

@@ -78,7 +78,7 @@ def fit_config(quick: bool) -> dict:
     cfg = copy.deepcopy(load_yaml(CONFIGS / "earth.yaml"))
     cfg["fit"] = {
         "free": list(TRUTH), "orders": 2, "multiple": "hillaire", "integrator": "chapman", "view_samples": 16,
-        "rule": "gauss", "starts": 1, "sun_disc_deg": 3.0, "min_elevation_deg": 2.0,
+        "rule": "gauss", "starts": 1, "sun_mask_deg": 3.0, "min_elevation_deg": 2.0,
     }
     return cfg
 
@@ -239,7 +239,7 @@ def _sample(observed_exr: Path, out: Path, progress: bool, log, device="cpu") ->
     cfg = fit_config(False)
     cfg["sample"] = {"walkers": 12, "steps": 150, "predictive_draws": 16, "max_samples": SAMPLE_PIXELS}
     summ = run_sample([observed_exr], cfg, out / "RESULT.json", out / "posterior", progress=progress,
-                      device=device)
+                      device=device, truths=TRUTH)  # truth lines on the corner plot
     ratios = ", ".join(f"{n} {'-' if r['ratio'] is None else format(r['ratio'], '.2f')}"
                        for n, r in (summ.get("laplace_vs_emcee") or {}).items())
     log(f"emcee on {SAMPLE_PIXELS} pixels: {summ['sampler']['steps']} steps x {summ['sampler']['walkers']} walkers, "

@@ -1,0 +1,449 @@
+"""The camera from the image: fisheye circle, the sun in the photo, and cameras that put the computed sun there.
+
+For an all-sky photo whose lens centre, radius, projection and heading are not known:
+
+1. :func:`detect_circle` finds the image circle, the edge of the bright disc against the dark
+   surround (Canny edges, a RANSAC circle, then a sub-pixel refinement along radial profiles).
+2. :func:`detect_sun` finds the sun's image in the darkest frame (the centroid of its saturated core,
+   or of a compact peak far above its surroundings).
+3. :func:`cameras_from_sun` builds one :class:`~skyfit.camera.fisheye.FisheyeCamera` per projection
+   with the centre and radius from the circle and the heading that puts the computed (SPA) sun on the
+   detected one, ranked by how well each projection maps the sun's zenith angle to its image radius.
+
+Image convention (CONTRACT.md): pixel (row i, column j) has its centre at (x = j, y = i); zenith at the
+circle's centre, North up, East left when ``up_azimuth_deg = 0``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+
+import numpy as np
+import skimage  # lazy sub-packages: skimage.measure etc. load (with scipy, ~0.7 s) at first use, not at `import skyfit`
+import torch
+
+from .fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, rho_to_theta, theta_to_rho, validate_projection
+
+__all__ = [
+    "CalibrationError",
+    "CameraGuess",
+    "Circle",
+    "SunDetection",
+    "cameras_from_sun",
+    "detect_circle",
+    "detect_sun",
+    "heading_from_sun",
+]
+
+
+class CalibrationError(ValueError):
+    """The camera cannot be estimated from the image (no circle, no consistent sun); a one-line message."""
+
+
+@dataclasses.dataclass
+class Circle:
+    """The fisheye's image circle.
+
+    Attributes:
+        cx, cy: centre, image convention (pixel (row i, col j) centre at (x = j, y = i)). [px]
+        radius: radius of the bright disc's edge (half-level crossing). [px]
+        inlier_fraction: fraction of the circle's visible circumference (the part inside the image)
+            whose refined edge point lies within 1 px of the circle. [1]
+        residual_px: RMS radial distance of those points from the circle. [px]
+    """
+
+    cx: float
+    cy: float
+    radius: float
+    inlier_fraction: float
+    residual_px: float
+
+
+@dataclasses.dataclass
+class SunDetection:
+    """The sun's image in the darkest frame.
+
+    Attributes:
+        x, y: centroid, image convention. [px]
+        radius_px: radius of the disc of the same area as the detected blob. [px]
+        saturated: True when found as a saturated core, False as an unsaturated peak.
+        n_pixels: pixels in the blob. [1]
+    """
+
+    x: float
+    y: float
+    radius_px: float
+    saturated: bool
+    n_pixels: int
+
+
+@dataclasses.dataclass
+class CameraGuess:
+    """One candidate camera (a projection) from the circle and the sun.
+
+    Attributes:
+        camera: centre and R90 from the circle, heading from the sun, no tilt.
+        projection: the camera's projection name.
+        score: |zenith angle this projection gives the detected sun's radius - computed sun zenith| [deg];
+            lower is better, ``inf`` where the radius is beyond the projection's domain, NaN without a
+            detected sun (no evidence: every projection tied).
+        sun_model_px: (x, y) where ``camera`` puts the computed sun [px], None where outside its view.
+        notes: what the guess assumed or could not determine, one line each.
+    """
+
+    camera: FisheyeCamera
+    projection: str
+    score: float
+    sun_model_px: tuple[float, float] | None
+    notes: list[str]
+
+
+# ----------------------------------------------------------------------------------- circle
+_CANNY_SIGMA = 1.5
+"""Gaussian smoothing of Canny [px]."""
+_CANNY_PER_LOG_STEP = 1.9
+"""Canny's gradient magnitude (scipy.ndimage.sobel, 8x the derivative) at a unit step after the
+sigma = 1.5 Gaussian, measured on a synthetic step edge (8 x 0.2395). [1 per ln unit]"""
+_FLOOR = 0.02
+"""Luminance floor as a fraction of the bright level (90th percentile), so that the surround's noise
+is flat in log luminance. [1]"""
+
+
+def _check_image(a: np.ndarray, name: str) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim != 2 or min(a.shape) < 16:
+        raise CalibrationError(f"{name} must be a 2-D image of at least 16x16 pixels, got shape {a.shape}")
+    return a
+
+
+def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray, order: int = 1) -> np.ndarray:
+    """Bilinear (order 1) or nearest (0) samples of a 2-D image at points (x, y) [px]; NaN outside the image."""
+    coords = np.stack([y.ravel(), x.ravel()])[:, None, :]  # skimage.transform.warp's (row, col) map, shape (2, 1, N)
+    out = skimage.transform.warp(image, coords, order=order, mode="constant", cval=np.nan, preserve_range=True,
+                                 clip=False)
+    return out.reshape(x.shape)
+
+
+def _radial_edges(lin: np.ndarray, valid: np.ndarray, cx: float, cy: float, r: float, n_angles: int,
+                  half_width: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Sub-pixel edge along radial profiles through an approximate circle.
+
+    Along each of ``n_angles`` rays from (cx, cy), the profile of ``lin`` over radii r +- half_width is
+    sampled (bilinear); the edge is where it falls through the middle between the inside level (median
+    over the inner quarter of the window) and the outside level (outer quarter), the crossing nearest r,
+    interpolated linearly. A hand-written search: no library offers a sub-pixel step along given rays.
+
+    Returns:
+        (x, y, visible, median outside/inside ratio): x, y shape (n,) of the rays with a clear edge [px];
+        visible, number of rays whose window lies inside the image and ``valid``.
+    """
+    phi = np.linspace(0, 2 * np.pi, n_angles, endpoint=False)
+    radii = np.arange(r - half_width, r + half_width + 1e-9, 0.25)
+    xx = cx + radii[None, :] * np.cos(phi)[:, None]
+    yy = cy + radii[None, :] * np.sin(phi)[:, None]
+    prof = _sample(lin, xx, yy, 1)
+    ok = _sample(valid.astype(np.float64), xx, yy, 0)
+    seen = np.all(np.isfinite(prof) & (ok > 0.5), axis=1)
+    q = len(radii) // 4
+    a = np.median(np.where(np.isfinite(prof[:, :q]), prof[:, :q], 0), axis=1)  # inside level
+    b = np.median(np.where(np.isfinite(prof[:, -q:]), prof[:, -q:], 0), axis=1)  # outside level
+    contrast = a - b
+    ratio = float(np.median(b[seen] / np.maximum(a[seen], 1e-300))) if seen.any() else 1.0
+    typical = np.median(contrast[seen]) if seen.any() else 0.0
+    clear = seen & (contrast > 0.3 * typical) & (contrast > 0) & (b < 0.5 * a)
+    xs, ys = [], []
+    j0 = len(radii) // 2
+    for k in np.nonzero(clear)[0]:
+        mid = 0.5 * (a[k] + b[k])
+        p = prof[k]
+        down = np.nonzero((p[:-1] >= mid) & (p[1:] < mid))[0]
+        if len(down) == 0:
+            continue
+        j = down[np.argmin(np.abs(down - j0))]
+        t = (p[j] - mid) / (p[j] - p[j + 1])
+        rr = radii[j] + t * (radii[j + 1] - radii[j])
+        xs.append(cx + rr * np.cos(phi[k]))
+        ys.append(cy + rr * np.sin(phi[k]))
+    return np.asarray(xs), np.asarray(ys), int(seen.sum()), ratio
+
+
+def _circle_params(model) -> tuple[float, float, float]:
+    """(cx, cy, radius) of a fitted ``skimage.measure.CircleModel``: ``center, radius`` from scikit-image 0.26,
+    ``params`` before (deprecated since)."""
+    if hasattr(model, "center"):
+        (x0, y0), r0 = model.center, model.radius
+    else:
+        x0, y0, r0 = model.params
+    return float(x0), float(y0), float(r0)
+
+
+def detect_circle(luminance: np.ndarray, valid: np.ndarray | None = None, *, seed: int = 0) -> Circle:
+    """The fisheye's image circle: the edge of the bright disc against the dark surround.
+
+    Canny edges (``skimage.feature.canny``) of the log luminance (floored at 2 % of the bright level,
+    so the surround's noise makes no edges), kept where the gradient points toward the bright mass
+    (bright inside, dark outside); a RANSAC circle (``skimage.measure.ransac`` with ``CircleModel``) on
+    them; then twice a refinement: the half-level crossing along 720 radial profiles and a RANSAC
+    circle (1 px threshold) on those points. Dark obstacles at the horizon (their edge lies inside the
+    circle), a bright dome rim, the sun's disc and clouds are outliers of both fits; where an obstacle
+    is brighter than the surround the crossing still marks the circle.
+
+    Args:
+        luminance: linear luminance (or any linear brightness), shape (H, W). [any unit]
+        valid: pixels that carry data, shape (H, W) bool (default: finite ones).
+        seed: seed of RANSAC's random generator.
+
+    Returns:
+        :class:`Circle`; a circle partly outside the image works while most of its edge is visible.
+
+    Raises:
+        CalibrationError: "no fisheye circle found: ..." when the image has no clear circle (e.g. a
+            full-frame image with no dark surround, or under 50 % of the visible rim on one circle).
+    """
+    lum = _check_image(luminance, "luminance")
+    h, w = lum.shape
+    valid = np.isfinite(lum) if valid is None else (np.asarray(valid, dtype=bool) & np.isfinite(lum))
+    if valid.shape != lum.shape:
+        raise CalibrationError(f"valid mask shape {valid.shape} differs from the image's {lum.shape}")
+    lum = np.where(valid, lum, 0.0)
+    bright = float(np.percentile(lum[valid], 90)) if valid.any() else 0.0
+    if not bright > 0:
+        raise CalibrationError("no fisheye circle found: the image is black")
+    lin = np.clip(lum / bright, 0.0, None)
+    log_l = np.log(np.maximum(lin, _FLOOR))
+    # edges of steps of at least ln 3 in log luminance (a factor of 3); smooth sky gradients stay far below
+    high = 0.5 * _CANNY_PER_LOG_STEP * math.log(3.0)
+    edges = skimage.feature.canny(log_l, sigma=_CANNY_SIGMA, low_threshold=0.5 * high, high_threshold=high,
+                                  mask=valid, mode="nearest")
+    rows, cols = np.nonzero(edges)
+    if len(rows) < 30:
+        raise CalibrationError(f"no fisheye circle found: only {len(rows)} edge pixels (no dark surround)")
+    # gradient direction at each edge point; the disc's edge has bright inside, so its gradient points toward the
+    # bright mass's centroid
+    smooth = skimage.filters.gaussian(log_l, sigma=_CANNY_SIGMA, mode="nearest")
+    gy, gx = np.gradient(smooth)
+    my, mx = np.argwhere(lin > 0.1).mean(axis=0) if (lin > 0.1).any() else ((h - 1) / 2, (w - 1) / 2)
+    g = np.stack([gx[rows, cols], gy[rows, cols]], 1)
+    to_c = np.stack([mx - cols, my - rows], 1)
+    cosang = (g * to_c).sum(1) / np.maximum(np.linalg.norm(g, axis=1) * np.linalg.norm(to_c, axis=1), 1e-12)
+    keep = cosang > 0.5
+    pts = np.stack([cols[keep], rows[keep]], 1).astype(np.float64)
+    if len(pts) < 30:
+        raise CalibrationError("no fisheye circle found: no edge with a bright inside and a dark outside")
+    rmin, rmax = 0.15 * min(h, w), math.hypot(h, w)
+
+    def plausible(model, *_):
+        x0, y0, r0 = _circle_params(model)
+        return rmin <= r0 <= rmax and -0.5 * w <= x0 <= 1.5 * w and -0.5 * h <= y0 <= 1.5 * h
+
+    rng = np.random.default_rng(seed)
+    with warnings.catch_warnings():  # "Estimated model is not valid": a failed fit is reported below, as one line
+        warnings.simplefilter("ignore", UserWarning)
+        model, inliers = skimage.measure.ransac(pts, skimage.measure.CircleModel, min_samples=3, residual_threshold=2.0,
+                                                is_model_valid=plausible, max_trials=1000, rng=rng)
+    if model is None or inliers is None or inliers.sum() < 30:
+        raise CalibrationError("no fisheye circle found: the edges fit no circle")
+    cx, cy, r = _circle_params(model)
+    for _ in range(2):
+        xs, ys, visible, ratio = _radial_edges(lin, valid, cx, cy, r, 720, max(6.0, 0.05 * r))
+        if visible < 0.3 * 720:
+            raise CalibrationError(f"no fisheye circle found: only {visible / 7.2:.0f} % of the candidate circle "
+                                   "lies in the image")
+        if ratio > 0.2:
+            raise CalibrationError(f"no fisheye circle found: outside the candidate circle is {ratio:.0%} as "
+                                   "bright as inside (no dark surround)")
+        if len(xs) < 30:
+            raise CalibrationError("no fisheye circle found: the candidate circle has no clear edge")
+        ref = np.stack([xs, ys], 1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            model, inl = skimage.measure.ransac(ref, skimage.measure.CircleModel, min_samples=3,
+                                                residual_threshold=1.0, is_model_valid=plausible, max_trials=300, rng=rng)
+        if model is None or inl is None:
+            raise CalibrationError("no fisheye circle found: the refined edge fits no circle")
+        cx, cy, r = _circle_params(model)
+    res = model.residuals(ref[inl])
+    frac = float(inl.sum()) / visible
+    if frac < 0.5:
+        raise CalibrationError(f"no fisheye circle found: only {frac:.0%} of the visible rim lies on one circle")
+    return Circle(float(cx), float(cy), float(r), frac, float(np.sqrt(np.mean(res**2))))
+
+
+# -------------------------------------------------------------------------------------- sun
+_LUMA = np.array([0.2126, 0.7152, 0.0722])
+"""Linear sRGB to relative luminance Y (IEC 61966-2-1). [1]"""
+
+
+def _compact(region, min_ratio: float = 0.2, min_solidity: float = 0.8) -> bool:
+    """A blob is compact (disc-like): minor/major axis >= min_ratio and solidity >= min_solidity.
+
+    The ratio allows the projection's own squeeze (an orthographic lens shrinks a disc radially by
+    cos(zenith): 0.47 at 62°, 0.26 at 75°); streaks and lines are thinner or removed by the opening."""
+    major = max(region.axis_major_length, 1e-9)
+    return region.axis_minor_length / major >= min_ratio and region.solidity >= min_solidity
+
+
+def detect_sun(darkest_rgb: np.ndarray, darkest_saturated: np.ndarray, inside: np.ndarray) -> SunDetection | None:
+    """The sun's image: centroid of its saturated core in the darkest frame, else of a compact peak.
+
+    Saturated path: the saturated pixels inside the circle are opened with a disc of radius 2 px
+    (``skimage.morphology``; removes blooming streaks and lines under 5 px wide), labelled
+    (``skimage.measure.label``), and the largest compact blob (minor/major axis >= 0.2, solidity >= 0.8;
+    not a long streak) of at least 3 pixels wins: lens-flare ghosts are smaller or unsaturated. Without
+    saturation: the brightest pixel of the luminance (Gaussian sigma = 1 px) if it stands at least 20x
+    above the median of an annulus around it (5-10 % of the circle's radius away) and the region above
+    half its height is compact and small; its centroid is weighted by the luminance above the annulus's.
+
+    Args:
+        darkest_rgb: linear RGB of the shortest exposure, shape (H, W, 3). [any unit]
+        darkest_saturated: saturated pixels of that frame, shape (H, W) or (H, W, 3) (any channel) bool.
+        inside: pixels inside the fisheye circle (and not masked), shape (H, W) bool.
+
+    Returns:
+        :class:`SunDetection`, or None when the sun is hidden (clouds, an obstacle, outside the view).
+    """
+    rgb = np.asarray(darkest_rgb, dtype=np.float64)
+    if rgb.ndim != 3 or rgb.shape[-1] != 3:
+        raise CalibrationError(f"darkest_rgb must have shape (H, W, 3), got {rgb.shape}")
+    sat = np.asarray(darkest_saturated, dtype=bool)
+    if sat.ndim == 3:
+        sat = sat.any(-1)
+    inside = np.asarray(inside, dtype=bool)
+    if sat.shape != rgb.shape[:2] or inside.shape != rgb.shape[:2]:
+        raise CalibrationError(f"saturated {sat.shape} and inside {inside.shape} masks must match the image "
+                               f"{rgb.shape[:2]}")
+    sat = sat & inside
+    if sat.sum() >= 3:
+        opened = skimage.morphology.opening(sat, skimage.morphology.disk(2))
+        for mask in (opened, sat):  # a core under 5 px wide does not survive the opening: then the raw mask
+            regions = [r for r in skimage.measure.regionprops(skimage.measure.label(mask, connectivity=2))
+                       if r.area >= 3 and _compact(r)]
+            if regions:
+                best = max(regions, key=lambda r: r.area)
+                y, x = best.centroid
+                return SunDetection(float(x), float(y), math.sqrt(best.area / math.pi), True, int(best.area))
+    lum = np.where(inside, rgb @ _LUMA, 0.0)
+    if not inside.any() or not np.isfinite(lum).all():
+        return None
+    sm = skimage.filters.gaussian(lum, sigma=1.0, mode="nearest")
+    sm = np.where(inside, sm, 0.0)
+    i0, j0 = np.unravel_index(np.argmax(sm), sm.shape)
+    r_in = math.sqrt(inside.sum() / math.pi)
+    r1, r2 = max(4.0, 0.05 * r_in), max(8.0, 0.10 * r_in)
+    yy, xx = np.mgrid[: lum.shape[0], : lum.shape[1]]
+    d = np.hypot(yy - i0, xx - j0)
+    ring = inside & (d >= r1) & (d <= r2)
+    if ring.sum() < 8:
+        return None
+    bg = float(np.median(sm[ring]))
+    peak = float(sm[i0, j0])
+    if not peak > 20.0 * max(bg, 1e-300):
+        return None
+    above = (sm - bg > 0.5 * (peak - bg)) & inside
+    lab = skimage.measure.label(above, connectivity=2)
+    blob = lab == lab[i0, j0]
+    reg = skimage.measure.regionprops(blob.astype(np.uint8), intensity_image=np.clip(lum - bg, 0, None))[0]
+    if reg.area > math.pi * r1**2 or not _compact(reg, 0.2, 0.7):
+        return None
+    y, x = reg.centroid_weighted
+    return SunDetection(float(x), float(y), math.sqrt(reg.area / math.pi), False, int(reg.area))
+
+
+# ---------------------------------------------------------------------------------- cameras
+def heading_from_sun(cx: float, cy: float, sun_x: float, sun_y: float, sun_azimuth_deg: float) -> float:
+    """``up_azimuth_deg`` [deg, in [0, 360)] that puts azimuth ``sun_azimuth_deg`` on the ray from the centre
+    (cx, cy) through the image point (sun_x, sun_y) [px], for an untilted camera.
+
+    With up-azimuth A, a direction of azimuth a lands at (dx, dy) = r (-sin(a - A), -cos(a - A)) from the
+    centre (the camera's x axis is (-cos A, sin A, 0) and y is (-sin A, -cos A, 0) in ENU, fisheye
+    module), so A = a - atan2(-dx, -dy).
+    """
+    return (sun_azimuth_deg - math.degrees(math.atan2(-(sun_x - cx), -(sun_y - cy)))) % 360.0
+
+
+def cameras_from_sun(
+    shape: tuple[int, int],
+    circle: Circle,
+    sun: SunDetection | None,
+    sun_zenith_deg: float,
+    sun_azimuth_deg: float,
+    projections=CLASSICAL_PROJECTIONS,
+    *,
+    max_zenith_deg: float = 90.0,
+) -> list[CameraGuess]:
+    """One camera per projection from the circle and the sun, best first.
+
+    Each camera has its centre at the circle's, R90 such that the circle is the ``max_zenith_deg``
+    circle (90°, the horizon, by default), no tilt, and the heading (``up_azimuth_deg``) that puts the
+    computed (SPA) sun's azimuth on the detected sun's direction from the centre
+    (:func:`heading_from_sun`). The score is the evidence for the projection: the zenith angle the
+    projection gives the detected sun's radius minus the computed sun zenith [deg, absolute].
+
+    What one sun point can and cannot determine: its direction from the centre fixes the heading
+    (exactly, for an untilted camera; a tilt of t degrees moves it by up to about t / sin(zenith)). Its
+    radius gives one zenith angle per projection, so it tells the projections apart only up to the
+    tilt and the circle's own error: a tilt of t degrees toward or away from the sun changes its zenith
+    angle by t, which is the same as another projection near the sun's zenith (the classical ones
+    differ by 2-4° at 40-60° zenith, and not at all near the centre or, with this normalisation, at the
+    horizon). The tilt starts at 0 and is left to the fit of the sky pattern, which should also compare
+    the top two projections when their scores are within a few degrees. Without a detected sun the
+    heading is 0 and must come from the sky pattern.
+
+    Args:
+        shape: image (H, W). [px]
+        circle: from :func:`detect_circle`.
+        sun: from :func:`detect_sun`, or None.
+        sun_zenith_deg, sun_azimuth_deg: the computed sun position (azimuth clockwise from North). [deg]
+        projections: names from CLASSICAL_PROJECTIONS.
+        max_zenith_deg: zenith angle of the circle's edge (e.g. 95 for a lens that sees below the
+            horizon, or less when a dome cuts the view). [deg]
+
+    Returns:
+        list of :class:`CameraGuess`, ascending score (NaN scores, without a sun, keep ``projections``' order).
+    """
+    h, w = (int(shape[0]), int(shape[1]))
+    if not (0.0 <= sun_zenith_deg <= 180.0 and math.isfinite(sun_azimuth_deg)):
+        raise CalibrationError(f"sun zenith must be in [0, 180] deg and azimuth finite, got {sun_zenith_deg}, "
+                               f"{sun_azimuth_deg}")
+    if not circle.radius > 0:
+        raise CalibrationError(f"circle radius must be > 0 px, got {circle.radius}")
+    for p in projections:
+        if validate_projection(p) not in CLASSICAL_PROJECTIONS:
+            raise CalibrationError(f"cameras_from_sun takes the classical projections, not {p}")
+    out = []
+    zen_t = torch.tensor(math.radians(sun_zenith_deg), dtype=torch.float64)
+    az_t = torch.tensor(math.radians(sun_azimuth_deg), dtype=torch.float64)
+    for p in projections:
+        notes: list[str] = []
+        if p == "orthographic" and max_zenith_deg > 90.0:
+            notes.append(f"orthographic cannot image beyond 90 deg; skipped max_zenith_deg {max_zenith_deg}")
+            continue
+        rho_edge = float(theta_to_rho(torch.tensor(math.radians(max_zenith_deg), dtype=torch.float64), p))
+        r90 = circle.radius / rho_edge
+        heading, score = 0.0, math.nan
+        if sun is None:
+            notes.append("sun not detected: heading 0, projections tied; the heading must come from the sky pattern")
+        else:
+            dx, dy = sun.x - circle.cx, sun.y - circle.cy
+            r = math.hypot(dx, dy)
+            heading = heading_from_sun(circle.cx, circle.cy, sun.x, sun.y, sun_azimuth_deg)
+            if r < 0.05 * circle.radius:
+                notes.append(f"sun within {r:.1f} px of the centre: heading poorly determined")
+            zen_img = float(rho_to_theta(torch.tensor(r / r90, dtype=torch.float64), p))
+            if math.isfinite(zen_img):
+                zen_img = math.degrees(zen_img)
+                score = abs(zen_img - sun_zenith_deg)
+                notes.append(f"detected sun at zenith {zen_img:.2f} deg under {p}, computed {sun_zenith_deg:.2f} deg")
+            else:
+                score = math.inf
+                notes.append(f"detected sun radius {r:.1f} px is beyond the {p} projection's domain")
+        notes.append("tilt assumed 0 (to be refined by the fit)")
+        cam = FisheyeCamera(size=(h, w), projection=p, cx=circle.cx, cy=circle.cy, radius=r90,
+                            up_azimuth_deg=heading, max_zenith_deg=max_zenith_deg)
+        x, y = cam.angles_to_pixel(zen_t, az_t)
+        model_px = (float(x), float(y)) if math.isfinite(float(x)) else None
+        out.append(CameraGuess(cam, p, score, model_px, notes))
+    if sun is not None:
+        out.sort(key=lambda g: g.score)
+    return out

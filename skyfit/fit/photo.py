@@ -1,0 +1,798 @@
+"""A sky photo as a user has it -> the atmosphere behind it: camera from the image, masks, fit, report.
+
+The path of ``skyfit fit PHOTO --time T --location LAT,LON[,ELEV]`` (CONTRACT.md, "Photos"),
+as plain functions on in-memory objects:
+
+1. **read** (:func:`skyfit.io.photo.read_photo`): JPEG/PNG/TIFF, RAW, ``.hdr``, EXR or a
+   bracket folder -> one linear image with per-pixel variance and censoring;
+2. **the sun** by NREL SPA from the time and place (:func:`skyfit.camera.sun_position`);
+3. **the camera** (:mod:`skyfit.camera.autocal`): the lens circle from the image, the sun's
+   saturated core, one candidate camera per projection with the heading that puts the computed
+   sun on the detected one, ranked by how well each projection puts it at the detected radius;
+   ``camera=`` (a :class:`~skyfit.camera.FisheyeCamera` or CAMERA.yaml) skips this;
+4. **what is not sky** (:mod:`skyfit.camera.masks`): outside the circle, below the horizon, the
+   sun's disc and flare, horizon obstacles, the user's mask; saturated and black pixels are
+   *censored* (bounds), not dropped;
+5. **blocks**: the photo is averaged over square blocks (about :data:`TARGET_SAMPLES` of them
+   inside the circle; a block with a masked pixel is left out), which keeps a fit's cost
+   independent of the photo's size and averages away JPEG and demosaicing noise; the block
+   image is itself a fisheye image of the same camera, scaled;
+6. **fit** (:func:`skyfit.fit.problem.prepare`, the one fit-problem builder): the aerosol
+   (``mie_aod_550``, ``mie_angstrom_alpha``, ``mie_g``) with the camera's nuisances (exposure,
+   white-balance gains, vignetting, heading as ``sun_azimuth_offset``, tilt), robust (Cauchy)
+   loss; then the pixels the first fit cannot explain (obstacles the image tests missed) are
+   masked (:func:`skyfit.camera.masks.grow_outlier_mask`) and the fit is repeated;
+7. **report**: RESULT.json's ``camera``, ``sun``, ``aerosol``, ``metrics.rmse_rel``, ``pixels``,
+   and RESULT.png (photo, model, residual, mask).
+
+Units: photo values are linear and relative (an unknown exposure scales them); angles in the
+result in degrees, pixel positions in the photo's pixels, x = column, y = row (CONTRACT.md).
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import time
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..camera.autocal import CalibrationError, cameras_from_sun, detect_circle, detect_sun
+from ..camera.fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, zenith_azimuth_to_enu
+from ..camera.masks import grow_outlier_mask, obstacle_mask, sun_mask
+from ..camera.sun import parse_location, parse_time, sun_position
+from ..io.photo import LinearPhoto, PhotoError, read_photo
+from .data import DataError, Observation
+from .model import FitProblem
+from .optimise import fit as optimise
+from .parameters import FitError
+from .problem import fit_settings, prepare
+
+TARGET_SAMPLES = 2500
+"""About this many blocks inside the lens circle are fitted, whatever the photo's size."""
+PHOTO_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "gain_red", "gain_blue", "vignetting",
+              "sun_azimuth_offset", "camera_tilt_north", "camera_tilt_east")
+"""Free parameters of a photo fit: the aerosol and the camera's nuisances. Rayleigh's scale stays at the
+config's (a photo of unknown exposure and white balance hardly separates it from the aerosol: add it with
+``free=``); the aerosol's scale height stays at the config's (a ground photo sees the column, not its shape)."""
+CALIBRATED_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "sun_azimuth_offset")
+"""Free parameters when the camera is given (``camera=``): its geometry, gains and vignetting are known."""
+PHOTO_SETTINGS = {"loss": "cauchy", "orders": 2, "multiple": "hillaire", "lut_size": [16, 16], "lut_directions": 32,
+                  "lut_samples": 12, "starts": 1, "adam_steps": 30, "max_iter": 80}
+"""Fit settings of a photo unless the config's ``fit:`` section or keywords say otherwise: a robust loss
+(obstacles the masks miss), two orders (Hillaire's LUT) since multiple scattering brightens the horizon of a
+hazy sky by tens of percent."""
+SIGMA_RELATIVE = 0.03
+"""Relative error of a block's value besides its measured variance: JPEG, demosaicing, the sensor's
+non-linearity, the model's own error (docs/photos.md). [1]"""
+OUTLIER_THRESHOLD = 0.25
+"""A block whose relative residual after the first fit exceeds this is a candidate obstacle. [1]"""
+
+
+class PhotoFitError(ValueError):
+    """A photo that cannot be fitted as given (one line naming the file and the problem)."""
+
+
+@dataclasses.dataclass
+class PhotoScene:
+    """A photo made ready for a fit: linear data, the sun, the camera and what is not sky.
+
+    Attributes:
+        photo: the linear photo (:class:`skyfit.io.photo.LinearPhoto`).
+        sun_zenith_deg, sun_azimuth_deg: by SPA at the photo's time and place. [deg]
+        sun_distance_au: Earth-Sun distance. [AU]
+        time: ISO 8601 with offset; location: {latitude_deg, longitude_deg, elevation_m}.
+        camera: the camera (given, or the best guess from the image).
+        candidates: the calibration's ranked guesses (empty when the camera was given).
+        detected_sun: the sun's saturated core in the image, or None.
+        circle: the detected lens circle (None when the camera was given).
+        masks: (H, W) bool, True = not used: ``outside``, ``horizon``, ``sun``, ``obstacles``, ``user``.
+        notes: what a user should know (estimated exposures, hidden sun, ...).
+        seconds: time of each step so far. [s]
+    """
+
+    photo: LinearPhoto
+    sun_zenith_deg: float
+    sun_azimuth_deg: float
+    sun_distance_au: float
+    time: str
+    location: dict
+    camera: FisheyeCamera
+    candidates: list
+    detected_sun: object | None
+    circle: object | None
+    masks: dict
+    notes: list
+    seconds: dict
+
+    @property
+    def excluded(self) -> np.ndarray:
+        """(H, W) bool: masked for any reason."""
+        out = np.zeros(self.photo.rgb.shape[:2], bool)
+        for m in self.masks.values():
+            out |= m
+        return out
+
+
+# -- camera files --------------------------------------------------------------------------------
+CAMERA_KEYS = ("projection", "size", "width", "height", "cx", "cy", "radius_px", "focal_px", "kb_coeffs", "up_azimuth_deg",
+               "tilt_deg", "max_zenith_deg", "vignetting", "gain_red", "gain_blue", "spectral_sensitivities")
+
+
+def read_camera(path: str | Path) -> dict:
+    """CAMERA.yaml (``skyfit calibrate-camera`` writes it) as a dict; ValueError naming the file and the problem.
+
+    Keys: ``projection``, ``cx``, ``cy``, ``radius_px`` (classical) or ``focal_px`` + ``kb_coeffs``
+    (kannala_brandt), optional ``up_azimuth_deg``, ``tilt_deg`` [deg], ``max_zenith_deg``, ``vignetting``
+    (v of 1 + v r^2), ``gain_red``/``gain_blue``, and ``spectral_sensitivities`` (a CSV of wavelength [nm],
+    R, G, B, relative to this file). ``size`` may be left out: the photo's is used.
+    """
+    import yaml
+
+    p = Path(path)
+    try:
+        data = yaml.safe_load(p.read_text())
+    except FileNotFoundError:
+        raise PhotoFitError(f"camera file {p}: not found") from None
+    except (OSError, yaml.YAMLError) as e:
+        raise PhotoFitError(f"camera file {p}: cannot read it: {str(e).splitlines()[0]}") from None
+    if not isinstance(data, dict):
+        raise PhotoFitError(f"camera file {p}: expected a mapping of camera parameters")
+    unknown = sorted(set(data) - set(CAMERA_KEYS) - {"convention", "rotation", "model", "tilt_zenith_deg",
+                                                     "tilt_azimuth_deg", "source", "photos"})
+    if unknown:
+        raise PhotoFitError(f"camera file {p}: unknown key(s) {', '.join(unknown)}; valid: {', '.join(CAMERA_KEYS)}")
+    if "spectral_sensitivities" in data and data["spectral_sensitivities"] is not None:
+        data["spectral_sensitivities"] = str((p.parent / str(data["spectral_sensitivities"])).resolve())
+    data["_source"] = str(p)
+    return data
+
+
+def camera_from_dict(meta: dict, shape: tuple[int, int]) -> FisheyeCamera:
+    """A :class:`FisheyeCamera` of a camera file's dict for a photo of ``shape`` (H, W)."""
+    m = {k: v for k, v in meta.items() if k in CAMERA_KEYS}
+    h, w = shape
+    size = m.get("size")
+    if size is not None and tuple(np.atleast_1d(size).tolist()) not in ((h, w), (w,) if h == w else ()):
+        raise PhotoFitError(f"camera file {meta.get('_source', '')}: made for images of size {size}, the photo is {h}x{w}")
+    m["size"] = [h, w] if h != w else h
+    try:
+        return FisheyeCamera.from_metadata(m)
+    except ValueError as e:
+        raise PhotoFitError(f"camera file {meta.get('_source', '')}: {e}") from None
+
+
+def read_sensitivities(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """A CSV of spectral sensitivities: wavelength [nm], R, G, B per row (a header line allowed) -> (K,), (K, 3)."""
+    p = Path(path)
+    try:
+        arr = np.genfromtxt(p, delimiter=",", comments="#", skip_header=0)
+        if np.isnan(arr[0]).all():
+            arr = arr[1:]
+    except (OSError, ValueError) as e:
+        raise PhotoFitError(f"spectral sensitivities {p}: cannot read: {e}") from None
+    if arr.ndim != 2 or arr.shape[1] != 4 or arr.shape[0] < 3 or not np.isfinite(arr).all():
+        raise PhotoFitError(f"spectral sensitivities {p}: need rows 'wavelength_nm,R,G,B' (>= 3 rows, finite)")
+    if not np.all(np.diff(arr[:, 0]) > 0) or (arr[:, 1:] < 0).any():
+        raise PhotoFitError(f"spectral sensitivities {p}: wavelengths must increase and sensitivities be >= 0")
+    return arr[:, 0], arr[:, 1:]
+
+
+# -- the scene ------------------------------------------------------------------------------------
+def _luminance(rgb: np.ndarray) -> np.ndarray:
+    return rgb @ np.array([0.2126, 0.7152, 0.0722])
+
+
+def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camera: FisheyeCamera | dict | str | Path | None = None,
+                  mask: np.ndarray | None = None, exposures: Sequence[float] | None = None, linear: bool = False,
+                  response: str | None = None, projections: Sequence[str] = CLASSICAL_PROJECTIONS) -> PhotoScene:
+    """Read the photo, place the sun, find the camera and the masks (steps 1-4 of the module docstring).
+
+    Args:
+        photo: a photo path (any format of :func:`skyfit.io.photo.read_photo`, or a bracket folder) or a read photo.
+        time: ISO 8601 with a UTC offset or a zone name.
+        location: "LAT,LON[,ELEV]" or (lat, lon[, elev]). [deg, deg, m]
+        camera: a FisheyeCamera, a camera dict (:func:`read_camera`) or CAMERA.yaml; None: from the image.
+        mask: (H, W) bool, True = ignore (the user's own).
+        exposures, linear, response: for :func:`read_photo`.
+        projections: the candidate projections when the camera is not given.
+
+    Raises:
+        PhotoFitError / PhotoError / CalibrationError (ValueErrors): one line naming the file and the problem.
+    """
+    seconds: dict = {}
+    t0 = _now()
+    if not isinstance(photo, LinearPhoto):
+        photo = read_photo(photo, linear=linear, exposures=exposures, response=response)
+    src = photo.source
+    seconds["read"] = _now() - t0
+    h, w = photo.rgb.shape[:2]
+    try:
+        lat, lon, elev = parse_location(location) if isinstance(location, str) else (tuple(float(v) for v in location) + (0.0,))[:3]
+        when = parse_time(time)
+    except (TypeError, ValueError) as e:
+        raise PhotoFitError(f"photo {src}: {e}") from None
+    sp = sun_position(when, lat, lon, elev)
+    sz, sa = float(sp.zenith), float(sp.azimuth)
+    if sz >= 90.0:
+        raise PhotoFitError(f"photo {src}: the sun is below the horizon at {when.isoformat()} (zenith {sz:.2f} deg); "
+                            "night and twilight skies are not fitted")
+    notes = list(photo.meta.get("notes", []))
+    t1 = _now()
+    candidates, circle, detected = [], None, None
+    inside_valid = photo.valid
+    if camera is None:
+        circle = detect_circle(_luminance(np.where(np.isfinite(photo.rgb), photo.rgb, 0.0)), photo.valid)
+        inside = _disc(h, w, circle.cx, circle.cy, circle.radius)
+        detected = detect_sun(photo.darkest, photo.darkest_saturated, inside & inside_valid)
+        candidates = cameras_from_sun((h, w), circle, detected, sz, sa, projections=tuple(projections))
+        cam = candidates[0].camera
+        for c in candidates[:1]:
+            notes.extend(c.notes)
+    else:
+        if isinstance(camera, (str, Path)):
+            camera = read_camera(camera)
+        cam = camera if isinstance(camera, FisheyeCamera) else camera_from_dict(camera, (h, w))
+        if tuple(cam.shape) != (h, w):
+            raise PhotoFitError(f"photo {src}: the camera is for {cam.height}x{cam.width} images, the photo is {h}x{w}")
+        detected = detect_sun(photo.darkest, photo.darkest_saturated, cam.valid_mask().numpy() & inside_valid)
+    seconds["calibrate"] = _now() - t1
+    if detected is None:
+        notes.append("the sun is not seen in the photo (hidden or outside the view): the heading comes from the sky pattern")
+    masks = scene_masks(photo, cam, detected, sz, sa, mask)
+    if not bool((~_union(masks)).any()):
+        raise PhotoFitError(f"photo {src}: no sky pixel left (the lens circle, horizon, sun and masks cover everything)")
+    return PhotoScene(photo, sz, sa, float(sp.distance_au), when.isoformat(),
+                      {"latitude_deg": float(lat), "longitude_deg": float(lon), "elevation_m": float(elev)},
+                      cam, candidates, detected, circle, masks, notes, seconds)
+
+
+def _now() -> float:
+    return time.perf_counter()
+
+
+def _disc(h: int, w: int, cx: float, cy: float, r: float) -> np.ndarray:
+    yy, xx = np.mgrid[0:h, 0:w]
+    return (xx - cx) ** 2 + (yy - cy) ** 2 <= r * r
+
+
+def _union(masks: dict) -> np.ndarray:
+    out = None
+    for m in masks.values():
+        out = m.copy() if out is None else out | m
+    return out
+
+
+def scene_masks(photo: LinearPhoto, cam: FisheyeCamera, detected, sun_zenith_deg: float, sun_azimuth_deg: float,
+                user: np.ndarray | None = None) -> dict:
+    """(H, W) bool masks, True = not used: outside the lens, below the horizon, sun and flare, obstacles, user's."""
+    h, w = photo.rgb.shape[:2]
+    with torch.no_grad():
+        vec, valid = cam.pixel_vectors(torch.float64)
+    valid = valid.numpy() & photo.valid
+    up = np.where(valid, vec[..., 2].numpy(), -1.0)
+    masks = {"outside": ~valid, "horizon": valid & (up <= math.sin(math.radians(2.0)))}
+    masks["sun"] = sun_mask((h, w), detected, cam, sun_zenith_deg, sun_azimuth_deg) & valid
+    rgb = np.where(np.isfinite(photo.rgb), photo.rgb, 0.0)
+    masks["obstacles"] = obstacle_mask(rgb, valid & ~masks["sun"], cam) & valid
+    if user is not None:
+        user = np.asarray(user, bool)
+        if user.shape != (h, w):
+            raise PhotoFitError(f"photo {photo.source}: the mask is {user.shape[0]}x{user.shape[1]}, the photo {h}x{w}")
+        masks["user"] = user & valid
+    return masks
+
+
+# -- blocks ---------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class BlockImage:
+    """The photo averaged over ``step`` x ``step`` blocks, and its camera.
+
+    Attributes:
+        step: block side. [px]
+        camera: the fisheye camera of the block image (centre and radius scaled by 1/step).
+        rgb: block means, (h, w, 3); variance: their variance, (h, w, 3).
+        usable: (h, w) bool: every pixel of the block is sky and inside the view, none censored.
+        censored: (h, w, 3) int8: +1 every pixel of the block saturated in that channel, -1 all black, else 0.
+        sky: (h, w) bool: every pixel of the block is sky and inside the view (censored or not).
+        candidate: (h, w) bool: inside the view, above the horizon, off the sun (obstacle tests aside).
+    """
+
+    step: int
+    camera: FisheyeCamera
+    rgb: np.ndarray
+    variance: np.ndarray
+    usable: np.ndarray
+    censored: np.ndarray
+    sky: np.ndarray
+    candidate: np.ndarray
+
+
+def scaled_camera(cam: FisheyeCamera, step: int, shape: tuple[int, int]) -> FisheyeCamera:
+    """The camera of an image of ``step`` x ``step`` block means: block (i, j) covers pixels
+    [i step, (i + 1) step), its centre at pixel (i step + (step - 1) / 2) of the photo."""
+    meta = cam.to_metadata()
+    h, w = shape
+    meta.update(size=[h, w] if h != w else h, cx=(meta["cx"] - (step - 1) / 2.0) / step,
+                cy=(meta["cy"] - (step - 1) / 2.0) / step, radius_px=meta["radius_px"] / step,
+                focal_px=meta["focal_px"] / step)
+    return FisheyeCamera.from_metadata(meta)
+
+
+def _blocks(a: np.ndarray, step: int, h: int, w: int) -> np.ndarray:
+    """(h, w, step*step, ...) view of the top-left h*step x w*step pixels of ``a`` grouped in blocks."""
+    a = a[: h * step, : w * step]
+    rest = a.shape[2:]
+    return a.reshape(h, step, w, step, *rest).swapaxes(1, 2).reshape(h, w, step * step, *rest)
+
+
+def block_image(scene: PhotoScene, step: int | None = None, exclude: np.ndarray | None = None) -> BlockImage:
+    """Average the photo over blocks of ``step`` px (None: about :data:`TARGET_SAMPLES` inside the circle)."""
+    ph, cam = scene.photo, scene.camera
+    H, W = ph.rgb.shape[:2]
+    inside = ~scene.masks["outside"]
+    if step is None:
+        step = max(1, int(round(math.sqrt(float(inside.sum()) / TARGET_SAMPLES))))
+    h, w = H // step, W // step
+    if h < 4 or w < 4:
+        raise PhotoFitError(f"photo {ph.source}: {H}x{W} px is too small to fit (blocks of {step} px)")
+    excluded = scene.excluded if exclude is None else exclude
+    sky_px = ~excluded
+    cand_px = inside & ~scene.masks["horizon"] & ~scene.masks["sun"]
+    rgb = np.where(np.isfinite(ph.rgb), ph.rgb, 0.0)
+    hi = _blocks(ph.censored_high, step, h, w)
+    lo = _blocks(ph.censored_low, step, h, w)
+    any_cens = (hi | lo).any(-1)  # (h, w, n) pixel censored in some channel
+    sky = _blocks(sky_px, step, h, w).all(-1)
+    cand = _blocks(cand_px, step, h, w).all(-1)
+    usable = sky & ~any_cens.any(-1)
+    vals = _blocks(rgb, step, h, w).mean(2)
+    var = np.where(np.isfinite(ph.variance), ph.variance, 0.0)
+    bvar = _blocks(var, step, h, w).sum(2) / float(step * step) ** 2
+    cens = np.zeros((h, w, 3), np.int8)
+    cens[hi.all(2)] = 1
+    cens[lo.all(2)] = -1
+    # a block fully censored in a channel but measured in the others is kept as a bound; partly censored: left out
+    bound = sky & ~usable & ((cens != 0) | ~(hi | lo).any(2)).all(-1)
+    usable_or_bound = usable | bound
+    return BlockImage(step, scaled_camera(cam, step, (h, w)), vals, bvar, usable_or_bound, cens, sky, cand)
+
+
+def block_observation(scene: PhotoScene, blocks: BlockImage, use: np.ndarray, *, sigma_relative: float = SIGMA_RELATIVE,
+                      response: tuple[np.ndarray, np.ndarray] | None = None, name: str | None = None) -> Observation:
+    """The blocks in ``use`` (h, w) bool as an RGB :class:`Observation` with the scene's sun, time and place.
+
+    sigma per value = sqrt(block variance + (sigma_relative x value)^2), floored at 1e-4 of the median value;
+    ``image_radius`` is each block's distance from the optical axis over the 90-degree radius.
+    """
+    cam = blocks.camera
+    with torch.no_grad():
+        vec, _ = cam.pixel_vectors(torch.float64)
+    idx = np.flatnonzero(use.reshape(-1))
+    if idx.size == 0:
+        raise PhotoFitError(f"photo {scene.photo.source}: no sky block left to fit")
+    vals = blocks.rgb.reshape(-1, 3)[idx]
+    var = blocks.variance.reshape(-1, 3)[idx]
+    floor = 1e-4 * float(np.median(vals[vals > 0])) if (vals > 0).any() else 1e-12
+    sig = np.sqrt(var + (sigma_relative * vals) ** 2)
+    sig = np.maximum(sig, floor)
+    h, w = use.shape
+    yy, xx = np.divmod(idx, w)
+    r = np.hypot(xx - float(cam.cx), yy - float(cam.cy)) / float(cam.r90)
+    meta = {"image_shape": [h, w], "block_px": blocks.step, "pixel_index": torch.as_tensor(idx), "camera": cam.to_metadata(),
+            "sigma_model": {"relative": sigma_relative, "variance": "merged photo's, per block"},
+            "mask": {"used": int(idx.size)}}
+    if response is not None:
+        meta["response"] = response
+    sz, sa = (torch.tensor(math.radians(v), dtype=torch.float64) for v in (scene.sun_zenith_deg, scene.sun_azimuth_deg))
+    return Observation(
+        name=name or Path(scene.photo.source).name, source=scene.photo.source, kind="rgb",
+        directions=vec.reshape(-1, 3)[torch.as_tensor(idx)].clone(), sun_zenith=sz, sun_azimuth=sa,
+        values=torch.as_tensor(vals), sigma=torch.as_tensor(sig), mask=torch.ones(idx.size, dtype=torch.bool),
+        channels=("R", "G", "B"), sun_distance_au=scene.sun_distance_au, time=scene.time, location=scene.location,
+        metadata=meta, image_radius=torch.as_tensor(r), censored=torch.as_tensor(blocks.censored.reshape(-1, 3)[idx]))
+
+
+# -- the fit ---------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class PhotoFit:
+    """A photo fit's outcome: RESULT.json's content, the problem and vector, and the images of its report."""
+
+    result: dict
+    problem: object
+    x: torch.Tensor
+    scene: PhotoScene
+    blocks: BlockImage
+    used: np.ndarray
+    model_rgb: np.ndarray
+    camera: FisheyeCamera
+
+
+def fitted_camera(cam: FisheyeCamera, azimuth_offset: float, tilt_north: float, tilt_east: float) -> FisheyeCamera:
+    """The camera whose pixels see what the fit's camera + nuisances see, with the sun where SPA puts it.
+
+    The fit rotates view directions by T = R_y(tilt_east) R_x(-tilt_north) (FitProblem.view_directions)
+    and adds ``azimuth_offset`` to the sun's azimuth; the sky is symmetric about the zenith, so that is the
+    same as the sun in place and views turned by the opposite azimuth: R = A(-offset) T R_cam. This returns
+    the FisheyeCamera (same projection and intrinsics) with that rotation. [rad]
+    """
+    def rx(a):
+        c, s = math.cos(a), math.sin(a)
+        return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+
+    def ry(a):
+        c, s = math.cos(a), math.sin(a)
+        return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+    def add_azimuth(d):  # azimuth clockwise from North in ENU: +d turns (E, N) clockwise seen from above
+        c, s = math.cos(d), math.sin(d)
+        return np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]])
+
+    R = add_azimuth(-azimuth_offset) @ ry(tilt_east) @ rx(-tilt_north) @ cam.rotation(torch.float64).numpy()
+    axis = R[:, 2]
+    zen = math.degrees(math.acos(max(-1.0, min(1.0, axis[2]))))
+    horiz = math.hypot(axis[0], axis[1])
+    te, tn = (zen * axis[0] / horiz, zen * axis[1] / horiz) if horiz > 1e-15 else (0.0, 0.0)
+    meta = cam.to_metadata()
+    meta.update(tilt_deg=[te, tn], up_azimuth_deg=0.0)
+    level = FisheyeCamera.from_metadata(meta)
+    up0 = np.diag([-1.0, -1.0, 1.0])  # R_up at up azimuth 0: camera x West, y South, z Up (fisheye module)
+    R_tilt = level.rotation(torch.float64).numpy() @ up0.T  # the tilt alone
+    R_up = R_tilt.T @ R
+    upw = R_up @ np.array([0.0, -1.0, 0.0])  # image up in the world, tilt removed
+    meta["up_azimuth_deg"] = math.degrees(math.atan2(upw[0], upw[1])) % 360.0
+    return FisheyeCamera.from_metadata(meta)
+
+
+def photo_settings(config: dict, overrides: dict | None, calibrated: bool):
+    """FitSettings of a photo fit: :data:`PHOTO_SETTINGS` under the config's ``fit:`` section and the overrides."""
+    section = dict(config.get("fit") or {})
+    base = {**PHOTO_SETTINGS, "free": list(CALIBRATED_FREE if calibrated else PHOTO_FREE)}
+    merged = {**base, **section}
+    return fit_settings(merged, overrides or {}, where="photo fit")
+
+
+def _fixed_camera_values(meta: dict | None) -> dict:
+    out = {}
+    for k in ("vignetting", "gain_red", "gain_blue"):
+        if meta and meta.get(k) is not None:
+            out[k] = float(meta[k])
+    return out
+
+
+def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None, camera_meta: dict | None = None,
+              laplace: bool = True, progress: bool = False, device="cpu", second_pass: bool = True,
+              choose_projection: bool = True) -> PhotoFit:
+    """Fit the atmosphere to a prepared scene (steps 5-7 of the module docstring); nothing is written."""
+    t0 = _now()
+    calibrated = not scene.candidates
+    s = photo_settings(config, overrides, calibrated)
+    fixed = _fixed_camera_values(camera_meta)
+    free = [n for n in s.free if n not in fixed]
+    s = dataclasses.replace(s, free=free, initial={**fixed, **s.initial})
+    response = None
+    if camera_meta and camera_meta.get("spectral_sensitivities"):
+        response = read_sensitivities(camera_meta["spectral_sensitivities"])
+    timings = dict(scene.seconds)
+
+    def run(sc: PhotoScene, exclude=None, start=None, settings=s):
+        blocks = block_image(sc, exclude=exclude)
+        obs = block_observation(sc, blocks, blocks.usable, sigma_relative=settings.sigma_relative
+                                if "sigma_relative" in (overrides or {}) else SIGMA_RELATIVE, response=response)
+        prep = prepare([obs], config, settings, device=device)
+        values = {**settings.initial, **(start or {})}
+        problem = prep.problem(settings.free, settings.per_observation, values)
+        x0 = problem.param.initial_vector(problem.param.base.dtype, problem.param.base.device)
+        x0 = problem.profile_exposure(x0)
+        for n in problem.param.free:
+            problem.param.set_value(n, problem.param.physical_dict(x0)[n])
+        res = optimise(problem, settings.options(progress))
+        return blocks, prep, problem, res
+
+    # the projection by evidence: candidates the sun alone cannot tell apart are fitted and scored by their loss
+    if scene.candidates and choose_projection:
+        best = scene.candidates[0]
+        close = [c for c in scene.candidates if c.score - best.score < 1.0 or scene.detected_sun is None]
+        if len(close) > 1:
+            quick = dataclasses.replace(s, max_iter=25, adam_steps=15)
+            scores = []
+            for c in close:
+                sc = dataclasses.replace(scene, camera=c.camera, masks=scene_masks(scene.photo, c.camera, scene.detected_sun,
+                                                                                    scene.sun_zenith_deg, scene.sun_azimuth_deg,
+                                                                                    scene.masks.get("user")))
+                _, _, _, r = run(sc, settings=quick)
+                scores.append(r.loss)
+            k = int(np.argmin(scores))
+            scene.notes.append("projection chosen by the fit's loss among " + ", ".join(
+                f"{c.projection} {v:.4g}" for c, v in zip(close, scores)))
+            chosen = close[k]
+            if chosen is not best:
+                scene = dataclasses.replace(scene, camera=chosen.camera, masks=scene_masks(
+                    scene.photo, chosen.camera, scene.detected_sun, scene.sun_zenith_deg, scene.sun_azimuth_deg,
+                    scene.masks.get("user")))
+            scene.candidates = [chosen] + [c for c in scene.candidates if c is not chosen]
+    timings["projection"] = _now() - t0
+
+    # heading from the sky pattern when the sun is not seen: several starting headings, the best loss wins
+    start = None
+    if scene.detected_sun is None and "sun_azimuth_offset" in s.free and not calibrated:
+        quick = dataclasses.replace(s, max_iter=25, adam_steps=15)
+        tries = []
+        for deg in (0.0, 90.0, 180.0, 270.0):
+            _, _, _, r = run(scene, start={"sun_azimuth_offset": math.radians(deg)}, settings=quick)
+            tries.append((r.loss, deg))
+        start = {"sun_azimuth_offset": math.radians(min(tries)[1])}
+    t1 = _now()
+    blocks, prep, problem, res = run(scene, start=start)
+    timings["fit_pass1"] = _now() - t1
+    if second_pass:
+        t2 = _now()
+        rel = relative_residual_map(problem, res.x, blocks, scene)
+        grown = grow_outlier_mask(_upsample(np.nan_to_num(rel, nan=0.0), blocks.step, scene.photo.rgb.shape[:2]),
+                                  ~scene.excluded, scene.camera, threshold=OUTLIER_THRESHOLD)
+        if grown.any():
+            scene.masks["outliers"] = grown & ~scene.excluded
+            start2 = {n: v for n, v in problem.param.physical_dict(res.x).items() if n in s.free}
+            blocks, prep, problem, res = run(scene, start=start2)
+        timings["fit_pass2"] = _now() - t2
+    t3 = _now()
+    result = photo_result(scene, blocks, prep, problem, res, config, laplace=laplace)
+    timings["report"] = _now() - t3
+    result["seconds_split"] = {k: round(v, 3) for k, v in timings.items()}
+    result["seconds"] = sum(timings.values())
+    model_rgb = predict_blocks(problem, res.x, blocks, scene, blocks.sky | blocks.candidate)
+    return PhotoFit(result, problem, res.x, scene, blocks, blocks.usable, model_rgb,
+                    camera_from_result(scene.camera, problem.param.physical_dict(res.x)))
+
+
+def _upsample(a: np.ndarray, step: int, shape: tuple[int, int]) -> np.ndarray:
+    """Block values back on the photo's pixels (nearest block; the ragged right/bottom edge repeats the last)."""
+    H, W = shape
+    big = np.repeat(np.repeat(a, step, 0), step, 1)
+    out = np.zeros((H, W) + a.shape[2:], a.dtype)
+    hh, ww = min(H, big.shape[0]), min(W, big.shape[1])
+    out[:hh, :ww] = big[:hh, :ww]
+    return out
+
+
+def predict_blocks(problem, x: torch.Tensor, blocks: BlockImage, scene: PhotoScene, where: np.ndarray) -> np.ndarray:
+    """The fitted model (with the camera's nuisances) on every block in ``where``, (h, w, 3); NaN elsewhere."""
+    fitted = problem.observations[0]
+    obs = block_observation(scene, blocks, where, response=fitted.metadata.get("response"))
+    other = FitProblem(problem.param, problem.model, [obs], problem.loss, base_sun_distance_au=base_sun_distance(problem))
+    with torch.no_grad():
+        pred = other.predict(x)[0].cpu().numpy()
+    out = np.full(blocks.rgb.shape, np.nan)
+    out.reshape(-1, 3)[np.flatnonzero(where.reshape(-1))] = pred
+    return out
+
+
+def base_sun_distance(problem: FitProblem) -> float:
+    """The Earth-Sun distance the problem's solar spectrum is for (undoing its per-observation scale). [AU]"""
+    o = problem.observations[0]
+    return 1.0 if o.sun_distance_au is None else o.sun_distance_au * math.sqrt(problem.solar_scale[0])
+
+
+def relative_residual_map(problem, x: torch.Tensor, blocks: BlockImage, scene: PhotoScene) -> np.ndarray:
+    """(model - photo) / photo in luminance on every candidate block (h, w); NaN where none or censored."""
+    where = blocks.candidate & ~(blocks.censored != 0).any(-1)
+    model = predict_blocks(problem, x, blocks, scene, where)
+    lm, lp = _luminance(np.nan_to_num(model)), _luminance(blocks.rgb)
+    rel = np.where(where & (lp > 0), (lm - lp) / np.where(lp > 0, lp, 1.0), np.nan)
+    return rel
+
+
+def camera_from_result(cam: FisheyeCamera, values: dict) -> FisheyeCamera:
+    """The photo's camera with the fitted heading and tilt (:func:`fitted_camera`)."""
+    g = lambda n: float(values.get(n, 0.0)) if not isinstance(values.get(n), list) else float(values[n][0])  # noqa: E731
+    return fitted_camera(cam, g("sun_azimuth_offset"), g("camera_tilt_north"), g("camera_tilt_east"))
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return math.degrees(math.atan2(float(np.linalg.norm(np.cross(a, b))), float(np.dot(a, b))))
+
+
+def photo_result(scene: PhotoScene, blocks: BlockImage, prep, problem, res, config: dict, *, laplace: bool) -> dict:
+    """RESULT.json of a photo fit: the common keys (:func:`skyfit.fit.results.result_dict`) and the photo's own."""
+    from .results import result_dict
+
+    s = prep.settings
+    result = result_dict(problem, res, command="fit", settings=dataclasses.asdict(s), config=config,
+                         config_source=str(config.get("name", "")), base_dist=prep.base_dist, dtype=s.dtype, seconds=0.0,
+                         laplace=laplace)
+    vals = problem.param.physical_dict(res.x)
+    cam = camera_from_result(scene.camera, vals)
+    sun_dir = zenith_azimuth_to_enu(torch.tensor(math.radians(scene.sun_zenith_deg), dtype=torch.float64),
+                                    torch.tensor(math.radians(scene.sun_azimuth_deg), dtype=torch.float64))
+    with torch.no_grad():
+        mx, my = cam.direction_to_pixel(sun_dir)
+    model_px = [float(mx), float(my)]
+    det = scene.detected_sun
+    detected_px, sep = None, None
+    if det is not None:
+        with torch.no_grad():
+            d = cam.pixel_to_direction(torch.tensor(det.x, dtype=torch.float64), torch.tensor(det.y, dtype=torch.float64))
+        sep = _angle_deg(d.numpy(), sun_dir.numpy())
+        detected_px = [float(det.x), float(det.y)]
+    sig = (result.get("laplace") or {}).get("sigma") or {}
+    pred = problem.predict(res.x)[0].detach()
+    obs = problem.observations[0]
+    v = obs.values[obs.mask]
+    measured = (obs.censored[obs.mask] == 0) & (v > 0)
+    pc = problem.censor(pred, 0)
+    rel = ((pc - v) / torch.where(v > 0, v, torch.ones_like(v)))[measured]
+    step2 = blocks.step ** 2
+    excluded = scene.excluded
+    inside = ~scene.masks["outside"]
+    censored_px = (scene.photo.censored_high | scene.photo.censored_low).any(-1) & inside & ~excluded
+    cam_meta = cam.to_metadata()
+    cam_meta.update(source="given" if not scene.candidates else "estimated from the image and the sun",
+                    vignetting=vals.get("vignetting"), gain_red=vals.get("gain_red"), gain_blue=vals.get("gain_blue"))
+    if scene.circle is not None:
+        cam_meta["circle"] = dataclasses.asdict(scene.circle)
+    if scene.candidates:
+        cam_meta["projection_evidence"] = [{"projection": c.projection, "sun_radius_error_deg": c.score}
+                                           for c in scene.candidates]
+    result["camera"] = cam_meta
+    result["sun"] = {"zenith_deg": scene.sun_zenith_deg, "azimuth_deg": scene.sun_azimuth_deg, "model_px": model_px,
+                     "detected_px": detected_px, "separation_deg": sep,
+                     "detected_radius_px": None if det is None else float(det.radius_px)}
+    result["aerosol"] = {"aod_550": vals["mie_aod_550"], "angstrom_alpha": vals["mie_angstrom_alpha"], "g": vals["mie_g"],
+                         "rayleigh_scale": vals["rayleigh_scale"],
+                         "sigma": {k: sig.get(n) for k, n in (("aod_550", "mie_aod_550"), ("angstrom_alpha", "mie_angstrom_alpha"),
+                                                               ("g", "mie_g"), ("rayleigh_scale", "rayleigh_scale"))}}
+    result["metrics"]["rmse_rel"] = float(torch.sqrt((rel ** 2).mean())) if rel.numel() else None
+    result["pixels"] = {"used": int(blocks.usable.sum()) * step2, "masked": int((excluded & inside).sum()),
+                        "censored": int(censored_px.sum()), "block_px": blocks.step,
+                        "masked_by": {k: int((m & inside).sum()) for k, m in scene.masks.items() if k != "outside"}}
+    result["photo"] = {k: v for k, v in scene.photo.meta.items()}
+    result["photo"]["shape"] = list(scene.photo.rgb.shape[:2])
+    result["notes"] = list(scene.notes)
+    result["time"], result["location"] = scene.time, scene.location
+    return result
+
+
+def fit_photo(photo, *, time: str, location, config: dict, camera=None, mask=None, exposures=None, linear: bool = False,
+              response: str | None = None, overrides: dict | None = None, laplace: bool = True, progress: bool = False,
+              device="cpu") -> PhotoFit:
+    """Steps 1-7 on one photo (see the module docstring); nothing is written. ValueErrors name the file."""
+    camera_meta = None
+    if isinstance(camera, (str, Path)):
+        camera_meta = read_camera(camera)
+        camera = camera_meta
+    elif isinstance(camera, dict):
+        camera_meta = camera
+    try:
+        scene = prepare_scene(photo, time=time, location=location, camera=camera, mask=mask, exposures=exposures,
+                              linear=linear, response=response)
+    except (PhotoError, CalibrationError, DataError, PhotoFitError):
+        raise
+    return fit_scene(scene, copy.deepcopy(config), overrides=overrides, camera_meta=camera_meta, laplace=laplace,
+                     progress=progress, device=device)
+
+
+def report_png(pf: PhotoFit, path: str | Path) -> Path:
+    """RESULT.png: photo, model, relative residual and mask side by side (atomic write)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..io.atomic import atomic_path
+
+    b = pf.blocks
+    sky = b.sky | b.candidate
+    lum = _luminance(np.nan_to_num(b.rgb))
+    white = float(np.percentile(lum[sky], 99)) if sky.any() else 1.0
+    tone = lambda a: np.clip(np.nan_to_num(a) / max(white, 1e-30), 0, 1) ** (1 / 2.2)  # noqa: E731
+    rel = np.where(sky, (_luminance(np.nan_to_num(pf.model_rgb)) - lum) / np.where(lum > 0, lum, 1.0), np.nan)
+    used = np.zeros(b.usable.shape + (3,))
+    used[..., 1] = b.usable
+    used[..., 0] = (b.censored != 0).any(-1) & b.sky
+    used[..., 2] = b.candidate & ~b.sky
+    fig, ax = plt.subplots(1, 4, figsize=(16, 4.4))
+    ax[0].imshow(tone(b.rgb))
+    ax[0].set_title("photo (linear, tone-mapped)")
+    ax[1].imshow(tone(np.where(sky[..., None], pf.model_rgb, 0.0)))
+    ax[1].set_title("model (fitted camera)")
+    im = ax[2].imshow(rel, cmap="RdBu_r", vmin=-0.3, vmax=0.3)
+    fig.colorbar(im, ax=ax[2], fraction=0.046, label="(model - photo) / photo")
+    ax[2].set_title(f"residual, rms {pf.result['metrics'].get('rmse_rel') or float('nan'):.3f}")
+    ax[3].imshow(used)
+    ax[3].set_title("used (green), censored (red), masked (blue)")
+    sun = pf.result["sun"]
+    for a in ax:
+        a.set_axis_off()
+        a.plot([sun["model_px"][0] / b.step], [sun["model_px"][1] / b.step], "y+", ms=12)
+        if sun["detected_px"]:
+            a.plot([sun["detected_px"][0] / b.step], [sun["detected_px"][1] / b.step], "mx", ms=8)
+    fig.suptitle(f"{Path(pf.scene.photo.source).name}: AOD550 {pf.result['aerosol']['aod_550']:.3f}, "
+                 f"alpha {pf.result['aerosol']['angstrom_alpha']:.2f}, g {pf.result['aerosol']['g']:.2f}")
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=90)
+    plt.close(fig)
+    return path
+
+
+__all__ = [
+    "BlockImage", "CALIBRATED_FREE", "PHOTO_FREE", "PHOTO_SETTINGS", "PhotoFit", "PhotoFitError", "PhotoScene",
+    "block_image", "block_observation", "camera_from_dict", "camera_from_result", "fit_photo", "fit_scene",
+    "fitted_camera", "prepare_scene", "read_camera", "read_sensitivities", "report_png", "scaled_camera", "scene_masks",
+]
+
+
+# -- files in, files out (the CLI's calls) ----------------------------------------------------------
+def read_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
+    """A user's mask image (PNG/TIFF/JPEG; non-zero = ignore) as (H, W) bool; PhotoFitError naming the file."""
+    import skimage.io  # here: 1 s to import, only a mask file needs it
+
+    p = Path(path)
+    if not p.is_file():
+        raise PhotoFitError(f"mask {p}: not found")
+    try:
+        m = np.asarray(skimage.io.imread(p))
+    except Exception as e:  # noqa: BLE001 - reader errors vary by plugin
+        raise PhotoFitError(f"mask {p}: cannot read it: {str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+    if m.ndim == 3:
+        m = m[..., :3].max(-1) if m.shape[-1] in (3, 4) else m.max(-1)
+    if m.shape != tuple(shape):
+        raise PhotoFitError(f"mask {p}: {m.shape[0]}x{m.shape[1]} px, the photo is {shape[0]}x{shape[1]}")
+    return m != 0
+
+
+def run_photo_fit(photo: str | Path, config: dict, out: str | Path, *, time: str, location, camera=None, mask=None,
+                  exposures=None, linear: bool = False, response: str | None = None, overrides: dict | None = None,
+                  plots: bool = True, progress: bool = False, laplace: bool = True, device="cpu") -> dict:
+    """``skyfit fit PHOTO``: fit, then write RESULT.png and RESULT.json (each atomically; nothing on failure)."""
+    from .results import check_result_path, save_result
+
+    out = check_result_path(out)
+    user_mask = None
+    if mask is not None:
+        ph = read_photo(photo, linear=linear, exposures=exposures, response=response)
+        user_mask = read_mask(mask, ph.rgb.shape[:2])
+        photo = ph
+    pf = fit_photo(photo, time=time, location=location, config=config, camera=camera, mask=user_mask, exposures=exposures,
+                   linear=linear, response=response, overrides=overrides, laplace=laplace, progress=progress, device=device)
+    if plots:
+        png = out.with_suffix(".png")
+        report_png(pf, png)
+        pf.result["plots"] = [str(png)]
+    save_result(pf.result, out)
+    return pf.result
+
+
+def evaluate_photo(result: dict, photo, *, time: str, location, refit: Sequence[str] = ("exposure",), device="cpu",
+                   progress: bool = False) -> dict:
+    """Score another photo of the same camera with a photo fit's atmosphere and camera.
+
+    The atmosphere and the camera (heading, tilt, vignetting, gains) stay as fitted; only ``refit``
+    (default the exposure, which differs from photo to photo) is fitted on the new photo.
+    Returns rmse_rel (relative RMS over the used blocks), rmse, delta_e, the pixels, the sun's placement.
+    """
+    if "camera" not in result or "aerosol" not in result:
+        raise PhotoFitError("evaluate PHOTO needs the RESULT.json of a photo fit (it has no fitted camera)")
+    cam = dict(result["camera"])
+    params = {k: v for k, v in result["parameters"].items() if not isinstance(v, list)}
+    fixed_atm = {k: v for k, v in params.items() if k in ("rayleigh_scale", "rayleigh_scale_height", "mie_aod_550",
+                                                           "mie_angstrom_alpha", "mie_ssa", "mie_scale_height", "mie_g",
+                                                           "ground_albedo", "ozone_column")}
+    config = dict(result["config"])
+    settings = dict(result.get("settings") or {})
+    keep = ("loss", "integrator", "orders", "multiple", "lut_size", "lut_directions", "lut_samples", "view_samples", "rule",
+            "wavelengths", "dtype")
+    overrides = {k: settings[k] for k in keep if k in settings}
+    overrides.update(free=list(refit), initial=fixed_atm)
+    scene = prepare_scene(photo, time=time, location=location, camera=cam)
+    pf = fit_scene(scene, config, overrides=overrides, camera_meta=cam, laplace=False, progress=progress, device=device,
+                   second_pass=False, choose_projection=False)
+    r = pf.result
+    return {"rmse_rel": r["metrics"]["rmse_rel"], "rmse": r["metrics"]["rmse"], "rmse_units": r["metrics"]["rmse_units"],
+            "delta_e": r["metrics"]["delta_e"], "n_samples": r["metrics"]["n_samples"], "refitted": list(refit),
+            "nuisance": {n: r["parameters"][n] for n in refit}, "sun": r["sun"], "pixels": r["pixels"],
+            "photo": r["photo"].get("format"), "seconds": r["seconds"]}
