@@ -315,6 +315,30 @@ def _exposures(text: str | None) -> list[float] | None:
     return vals
 
 
+@contextlib.contextmanager
+def _photo_named(photo, out=None):
+    """A photo command's errors name the photo (the image tests' CalibrationError does not), and a failed or
+    interrupted fit leaves no RESULT.png without its RESULT.json (run_photo_fit writes the plot first)."""
+    from .camera.autocal import CalibrationError
+
+    png = Path(out).with_suffix(".png") if out else None
+    had = png is not None and png.exists()
+    try:
+        yield
+    except CalibrationError as e:
+        msg = str(e)
+        _drop_orphan_png(png, had, out)
+        raise (e if str(photo) in msg else UserError(f"photo {photo}: {msg}")) from None
+    except BaseException:
+        _drop_orphan_png(png, had, out)
+        raise
+
+
+def _drop_orphan_png(png, had: bool, out) -> None:
+    if png is not None and not had and png.exists() and not Path(out).exists():
+        png.unlink()
+
+
 def cmd_fit_photo(args) -> int:
     from .fit.photo import run_photo_fit
 
@@ -324,10 +348,11 @@ def cmd_fit_photo(args) -> int:
         raise UserError("--select applies to EXR and Kider data, not photos")
     cfg, source = read_config(args.config or "earth")
     overrides = {k: v for k, v in {**_fit_overrides(args), "dtype": args.dtype}.items() if v is not None}
-    res = run_photo_fit(args.data[0], cfg, args.out, time=args.time, location=args.location, camera=args.camera,
-                        mask=args.mask, exposures=_exposures(args.exposures), linear=args.linear, response=args.response,
-                        overrides=overrides, plots=not args.no_plots, progress=_progress(args), laplace=True,
-                        device=_check_device(args.device))
+    with _photo_named(args.data[0], args.out):
+        res = run_photo_fit(args.data[0], cfg, args.out, time=args.time, location=args.location, camera=args.camera,
+                            mask=args.mask, exposures=_exposures(args.exposures), linear=args.linear, response=args.response,
+                            overrides=overrides, plots=not args.no_plots, progress=_progress(args), laplace=True,
+                            device=_check_device(args.device))
     a, sun, px = res["aerosol"], res["sun"], res["pixels"]
     summary = {"out": str(args.out), "aerosol": a, "camera": {k: res["camera"][k] for k in
                ("projection", "cx", "cy", "radius_px", "up_azimuth_deg", "tilt_deg")}, "sun": sun,
@@ -388,7 +413,7 @@ def cmd_fit(args) -> int:
             print(f"chosen: {res['selection']['why']}")
         sig = res.get("laplace", {}).get("sigma", {})
         for n, v in summary["free"].items():
-            print(f"{n:22s} {v}" + (f" +- {sig[n]:.3g} (Laplace)" if n in sig else ""))
+            print(f"{n:22s} {v}" + (f" +- {sig[n]:.3g} (Laplace)" if sig.get(n) is not None else ""))
         print(f"loss {m['loss']:.6g}  rmse {m['rmse']:.4g} {m['rmse_units']}  delta_e {m['delta_e']:.3g}  "
               f"({m['n_samples']} samples; {c['reason']} after {c['iterations']} L-BFGS iterations, {res['seconds']:.1f} s)")
         print(f"wrote {args.out}")
@@ -403,8 +428,9 @@ def cmd_evaluate(args) -> int:
         if args.time is None or args.location is None:
             raise UserError(f"photo {args.data[0]}: give --time (ISO 8601 with its UTC offset) and --location LAT,LON[,ELEV]")
         refit = ["exposure"] + (["sun_azimuth_offset", "gain_red", "gain_blue"] if args.refit_nuisance else [])
-        res = evaluate_photo(read_result(args.result), args.data[0], time=args.time, location=args.location, refit=refit,
-                             device=_check_device(args.device), progress=_progress(args))
+        with _photo_named(args.data[0]):
+            res = evaluate_photo(read_result(args.result), args.data[0], time=args.time, location=args.location, refit=refit,
+                                 device=_check_device(args.device), progress=_progress(args))
         if args.json:
             print(dumps(res, indent=None))
         else:
@@ -689,6 +715,57 @@ def cmd_export_lut(args) -> int:
     return 0
 
 
+# -- one camera from several photos ----------------------------------------------
+def cmd_calibrate_camera(args) -> int:
+    """``skyfit calibrate-camera PHOTO... --time T ... --location L --out CAMERA.yaml`` (skyfit.fit.photo_calibration)."""
+    from .fit.photo_calibration import calibrate_camera, write_camera
+
+    times = list(args.time or [])
+    for t in times:  # before any photo is read: a bad time is the flag's error
+        try:
+            parse_time(t)
+        except ValueError as e:
+            msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+            raise UserError(f"--time {t}: {msg}") from None
+    if len(times) != len(args.photos):
+        raise UserError(f"--time: give one per photo, in order: {len(args.photos)} photo(s), {len(times)} --time")
+    if Path(args.out).suffix.lower() not in (".yaml", ".yml"):
+        raise UserError(f"--out must name a .yaml file, got {args.out}")
+    cfg, source = read_config(args.config or "earth")
+    cam = calibrate_camera(args.photos, times, args.location, cfg, linear=args.linear, device=_check_device(args.device))
+    write_camera(cam, args.out)
+    summary = {"out": str(args.out), **{k: cam[k] for k in ("projection", "size", "cx", "cy", "radius_px", "up_azimuth_deg",
+                                                            "tilt_deg", "vignetting", "gain_red", "gain_blue") if k in cam},
+               "spread": cam["_spread"], "photos": len(cam["photos"])}
+    if args.json:
+        print(dumps(summary, indent=None))
+    else:
+        sp = cam["_spread"]
+        print(f"projection {cam['projection']} ({sp['projection']})")
+        print(f"centre ({cam['cx']:.2f}, {cam['cy']:.2f}) px +- {max(sp['cx']['max_abs_dev'], sp['cy']['max_abs_dev']):.2g}, "
+              f"radius {cam['radius_px']:.2f} px +- {sp['radius_px']['max_abs_dev']:.2g}")
+        print(f"up azimuth {cam['up_azimuth_deg']:.2f} deg +- {sp['up_azimuth_deg']['max_abs_dev']:.2g}, tilt "
+              f"{cam['tilt_deg'][0]:.2f}/{cam['tilt_deg'][1]:.2f} deg (East/North)")
+        print(f"wrote {args.out} ({len(cam['photos'])} photo(s))")
+    return 0
+
+
+def _add_calibrate_camera_parser(sub) -> None:
+    c = sub.add_parser("calibrate-camera", help="one CAMERA.yaml (projection, centre, radius, heading, tilt, vignetting, "
+                       "gains) from sky photos of known time and place, for fit PHOTO --camera (docs/photos.md)")
+    c.add_argument("photos", nargs="+", help="photos of one camera (JPEG/PNG/TIFF, RAW, .hdr, EXR, or bracket folders), "
+                   "all of one image size")
+    c.add_argument("--time", action="append", help="when each photo was taken, ISO 8601 with its UTC offset or a zone name; "
+                   "one --time per photo, in the photos' order (required)")
+    c.add_argument("--location", required=True, help="LAT,LON[,ELEV] [deg, deg, m] of the photos")
+    c.add_argument("--out", required=True, help="CAMERA.yaml to write (atomically)")
+    c.add_argument("--config", help="atmosphere config YAML with an optional fit: section (or a shipped name); default earth")
+    c.add_argument("--linear", action="store_true", help="pixel values are linear (no sRGB decoding)")
+    c.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
+    c.add_argument("--json", action="store_true", help="print the summary as one line of JSON")
+    c.set_defaults(func=cmd_calibrate_camera)
+
+
 # -- many skies ------------------------------------------------------------------
 def cmd_batch(args) -> int:
     """``skyfit batch``: a thin layer over :func:`skyfit.batch.batch` (CONTRACT.md, "Many skies"; docs/batch.md)."""
@@ -703,7 +780,9 @@ def cmd_batch(args) -> int:
                    threads_per_worker=args.threads_per_worker or 1, resume=args.resume, laplace=args.laplace,
                    progress=_progress(args), retries=args.retries, free=free, kider_site=_kider_site(args),
                    plot=not args.no_plots, warm_start=args.warm_start, device=device,
-                   force=getattr(args, "force", False), log=say,
+                   force=getattr(args, "force", False), log=say, location=args.location, times=args.times,
+                   photo_timezone=args.photo_timezone, camera=args.camera, mask=args.mask, linear=args.linear,
+                   response=args.response, smooth=args.smooth,
                    **{k: v for k, v in overrides.items() if v is not None})
     a = df.attrs
     n_ok = int((df["status"] == "ok").sum())
@@ -722,8 +801,12 @@ def _add_batch_parser(sub) -> None:
     D = FitSettings()
     b = sub.add_parser("batch", help="one fit per item (captures, photos, folders, globs) on Dask: RESULT.json per item, "
                                      "results.parquet/.csv, timeseries.png (docs/batch.md)")
-    b.add_argument("data", nargs="+", help="Kider capture folders, .exr files, folders of either, or globs (quoted)")
-    b.add_argument("--config", required=True, help="atmosphere config YAML with an optional fit: section (or a shipped name)")
+    b.add_argument("data", nargs="+", help="Kider capture folders, .exr files, photos (JPEG/PNG/TIFF/RAW/.hdr/EXR without "
+                   "skyfit metadata), bracket folders, folders of any of these, or globs (quoted). A folder of image "
+                   "frames is one bracket when it holds a file named .bracket or its frames' EXIF times lie within "
+                   "10 s; otherwise each frame is one photo (docs/batch.md)")
+    b.add_argument("--config", help="atmosphere config YAML with an optional fit: section (or a shipped name); "
+                   "required for EXR and Kider data, default earth when every item is a photo")
     b.add_argument("--out", required=True, help="output folder: <item>/RESULT.json, results.parquet, results.csv, timeseries.png")
     b.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler, tcp://HOST:PORT (default: a local cluster)")
     b.add_argument("--workers", type=int, help="local cluster: worker processes (default: one per CPU)")
@@ -732,8 +815,24 @@ def _add_batch_parser(sub) -> None:
     b.add_argument("--resume", action="store_true", help="skip the items with a complete RESULT.json in --out")
     b.add_argument("--laplace", action="store_true", help="Laplace sigma per free parameter (sigma_<name> columns, bands in timeseries.png)")
     b.add_argument("--warm-start", choices=("previous",),
-                   help="previous: start each fit from the item before it (in order; contiguous chains, one per worker thread)")
+                   help="previous: start each fit from the item before it (in order; contiguous chains, one per worker "
+                   "thread; a photo passes on only its aerosol)")
+    b.add_argument("--smooth", metavar="SIGMA",
+                   help="after the fits, smooth AOD 550 (in log), Ångström α and g over time jointly: a random walk "
+                   "of SIGMA per sqrt(hour) (0.1 = 10%% AOD change / 0.1 in α, g per sqrt(h)) or "
+                   "aod_550=S,angstrom_alpha=S,g=S; Student-t weights for outliers; adds <name>_smooth, "
+                   "sigma_<name>_smooth, smooth_weight columns (docs/batch.md)")
     _add_fit_options(b, D)
+    b.add_argument("--times", metavar="CSV", help="photos: rows file,time (ISO 8601); a photo's row wins over its EXIF "
+                   "DateTimeOriginal (paths relative to the CSV, or file names)")
+    b.add_argument("--photo-timezone", metavar="ZONE", help="photos: the zone of times without a UTC offset (EXIF "
+                   "DateTimeOriginal without OffsetTimeOriginal, naive --times rows): +02:00, -4 or an IANA name "
+                   "such as Europe/Berlin (daylight saving applied)")
+    b.add_argument("--camera", help="photos: CAMERA.yaml of the camera that took them all (default: each photo's camera "
+                   "estimated from the image and the sun)")
+    b.add_argument("--mask", help="photos: an image of the photos' size, non-zero = ignore (added to the automatic masks)")
+    b.add_argument("--linear", action="store_true", help="photos: pixel values are linear (no sRGB decoding)")
+    b.add_argument("--response", help="photos: camera response srgb, linear, gamma:G or estimate")
     b.add_argument("--no-plots", action="store_true", help="do not write timeseries.png")
     b.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (resolved on each worker); default cpu")
     b.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar over the items (default: on a terminal)")
@@ -851,6 +950,7 @@ OUTPUTS: dict[str, tuple[tuple[str, bool], ...]] = {
     "render": (("out", False),), "fit": (("out", False),), "calibrate-integrator": (("out", False),),
     "envmap": (("out", False),), "sample": (("out", True),), "bench": (("out", True), ("frontier_out", False)),
     "demo": (("out", True),), "export-lut": (("out", True),), "batch": (("out", True),),
+    "calibrate-camera": (("out", False),),
 }
 """Output paths, checked for writability (and file vs folder) before any work."""
 FORCE_COMMANDS = ("render", "fit", "sample", "evaluate", "export-lut", "envmap", "batch")
@@ -1061,6 +1161,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(func=cmd_demo)
     _add_fit_parsers(sub)
     _add_batch_parser(sub)
+    _add_calibrate_camera_parser(sub)
 
     b = sub.add_parser("bench", help="speed/accuracy table of the transmittance integrators")
     b.add_argument("--out", default="bench_out", help="report folder (default %(default)s)")

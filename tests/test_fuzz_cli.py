@@ -43,6 +43,9 @@ BASE: dict[str, list[str]] = {
     "calibrate-integrator": ["calibrate-integrator", "earth", "--quick", "--out", "{w}/c.json"],
     "export-lut": ["export-lut", "{in}/RESULT.json", "--out", "{w}/lut", "--orders", "1", "--table-sizes", "4,4,4,2"],
     "envmap": ["envmap", "earth", "--out", "{w}/e.exr", "--size", "8", "--sun-zenith", "30", "--orders", "1"],
+    # every case fails before its photo is read: the photo need not exist
+    "calibrate-camera": ["calibrate-camera", "{in}/photo.jpg", "--time", "2024-06-01T10:00:00+02:00", "--location", "48.1,11.6",
+                         "--out", "{w}/camera.yaml", "--config", "earth"],
 }
 """Commands whose flags are checked beyond argparse only when every check runs before the work: batch
 (a Dask cluster) gets only the cases refused before it starts (types, ranges, outputs)."""
@@ -102,6 +105,7 @@ PAIRS: list[tuple[str, list[str], str]] = [
     ("fit", ["--mask", "{w}/mask.png"], "--mask"),
     ("fit", ["--exposures", "0.01,0.1"], "--exposures"),
     ("fit", ["--response", "srgb"], "--response"),
+    ("batch", ["--smooth", "abc"], "--smooth"),
 ]
 
 # -- files -------------------------------------------------------------------------------------
@@ -138,6 +142,7 @@ SLOTS: list[tuple[str, str, list[str]]] = [
     ("sample", "pos:0", ["missing", "unreadable", "empty", "garbage", "exr_zero", "exr_truncated"]),
     ("export-lut", "pos:0", ["missing", "folder", "unreadable", "empty", "garbage", "exr", "json_other", "result_nan", "result_range"]),
     ("envmap", "pos:0", ["missing", "folder", "unreadable", "garbage", "result_nan", "result_range"]),
+    ("calibrate-camera", "--config", ["missing", "folder", "unreadable", "empty", "garbage", "yaml_list", "exr"]),
 ]
 SUFFIX = {"missing": "nothing.yaml", "folder": "afolder", "unreadable": "mem", "empty": "empty.yaml", "garbage": "garbage.yaml",
           "yaml_list": "list.yaml", "exr": "sky.exr", "json_other": "other.json", "result_nan": "nan.json",
@@ -160,6 +165,7 @@ OUTS: list[tuple[str, str, list[str]]] = [
     ("export-lut", "--out", ["file", "under_file", "proc"]),
     ("batch", "--out", ["file", "under_file", "proc"]),
     ("bench", "--frontier-out", ["dir", "under_file", "proc"]),
+    ("calibrate-camera", "--out", ["dir", "under_file", "proc", "suffix:.txt"]),
 ]
 
 
@@ -334,7 +340,9 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(case, inputs, tmp_path,
 
 UNCOVERED = {("batch", f) for f in ("--accuracy", "--config", "--device", "--free", "--integrator", "--location", "--loss",
                                      "--per-observation", "--rule", "--scheduler", "--wavelengths")}
-"""(command, flag) pairs no case varies: batch checks these once its Dask cluster runs (EARLY_ONLY)."""
+UNCOVERED |= {("batch", f) for f in ("--photo-timezone", "--times", "--mask", "--camera", "--response")}
+"""(command, flag) pairs no case varies: batch checks these once its Dask cluster runs (EARLY_ONLY); the photo
+flags only when there are photo items (tests/test_batch.py covers their bad values)."""
 
 
 def test_the_fuzz_suite_covers_every_command_and_flag():

@@ -8,6 +8,9 @@ Config layout (all SI; see configs/earth.yaml for a commented example)::
              # or {table: penndorf_rayleigh_sea_level_15C, scale_height_m: 8000}
     mie: {angstrom_alpha: 0.0, angstrom_beta: 5.328e-3, single_scattering_albedo: 0.9,
           scale_height_m: 1200, g: 0.8, phase: cornette_shanks}
+         # phase: two_term_hg adds g2 (backward lobe, in (-1, 1)) and hg_weight (f of the forward lobe g,
+         # in (0, 1]); profile: boundary_layer adds mixing_height_m (docs/aerosol.md). With the boundary
+         # layer, angstrom_beta is still the optical depth at 1 um: extinction = beta / (h_mix + H_M).
     ozone: {column_du: 300, layer_m: [10000, 25000, 40000], cross_section: ozone_cross_section_233K}
     ground: {albedo: 0.1}      # or {table: grass_albedo}
     sun: {distance_au: 1.0}
@@ -78,6 +81,7 @@ SECTION_KEYS: dict[str, frozenset[str]] = {
     "rayleigh": frozenset({"coefficient", "exponent", "scale_height_m", "table", "scale"}),
     "mie": frozenset({
         "angstrom_alpha", "angstrom_beta", "extinction_550", "single_scattering_albedo", "scale_height_m", "g", "phase",
+        "g2", "hg_weight", "profile", "mixing_height_m",
     }),
     "ozone": frozenset({"column_du", "layer_m", "cross_section"}),
     "ground": frozenset({"albedo", "table"}),
@@ -188,12 +192,29 @@ def atmosphere_from_config(
     for key, h in (("rayleigh.scale_height_m", h_r), ("mie.scale_height_m", h_m)):
         if not h > 0:
             raise ConfigError(f"{key} must be > 0 m (scale heights), got {h}")
+    phase = str(mie.get("phase", "cornette_shanks"))
+    g2 = weight = None
+    if phase == "two_term_hg":
+        g2 = _get(mie, "g2", None, "mie")
+        weight = _get(mie, "hg_weight", None, "mie")
+    elif "g2" in mie or "hg_weight" in mie:
+        raise ConfigError(f"mie.g2 and mie.hg_weight belong to phase: two_term_hg, not {phase!r}")
+    profile = str(mie.get("profile", "exponential"))
+    h_mix = None
+    if profile == "boundary_layer":
+        h_mix = _get(mie, "mixing_height_m", None, "mie")
+        if not h_mix > 0:
+            raise ConfigError(f"mie.mixing_height_m must be > 0 m, got {h_mix}")
+    elif "mixing_height_m" in mie:
+        raise ConfigError(f"mie.mixing_height_m belongs to profile: boundary_layer, not {profile!r}")
+    # the aerosol's vertical column int rho dh: AOD = extinction x this (H_M, or h_mix + H_M for the boundary layer)
+    column_m = h_m if h_mix is None else h_mix + h_m
     if "extinction_550" in mie:
         ext_550 = _nonneg(_get(mie, "extinction_550", None, "mie"), "mie.extinction_550")
         ext_m = ext_550 * (lam / 550.0) ** (-_get(mie, "angstrom_alpha", 0.0, "mie"))
     else:
         beta = _get(mie, "angstrom_beta", C.MIE_EXTINCTION_PER_M * C.MIE_SCALE_HEIGHT_M, "mie")
-        ext_m = angstrom_extinction(lam, _nonneg(beta, "mie.angstrom_beta"), _get(mie, "angstrom_alpha", 0.0, "mie"), h_m)
+        ext_m = angstrom_extinction(lam, _nonneg(beta, "mie.angstrom_beta"), _get(mie, "angstrom_alpha", 0.0, "mie"), column_m)
     ssa = _get(mie, "single_scattering_albedo", C.MIE_SINGLE_SCATTERING_ALBEDO, "mie")
     if not 0 <= ssa <= 1:
         raise ConfigError(f"mie.single_scattering_albedo must be in [0, 1], got {ssa}")
@@ -253,8 +274,12 @@ def atmosphere_from_config(
             ozone_absorption=None if ozone_abs is None else T(ozone_abs),
             ozone_layer_m=layer,  # type: ignore[arg-type]
             sun_angular_radius=_get(sun, "angular_radius_rad", C.SUN_ANGULAR_RADIUS_RAD, "sun"),
-            mie_phase=str(mie.get("phase", "cornette_shanks")),
+            mie_phase=phase,
             name=str(cfg.get("name", "atmosphere")),
+            mie_g2=None if g2 is None else T(g2),
+            mie_hg_weight=None if weight is None else T(weight),
+            mie_profile=profile,
+            mie_mixing_height=None if h_mix is None else T(h_mix),
             config=copy.deepcopy(cfg),
         )
     except ValueError as e:

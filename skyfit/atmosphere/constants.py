@@ -35,3 +35,8 @@ DOBSON_UNIT_PER_M2: float = 2.687e20
 
 LUMINOUS_EFFICACY_LM_PER_W: float = 683.0
 """Maximum luminous efficacy of photopic vision [lm/W] (CIE; CONTRACT.md)."""
+
+PRESSURE_SCALE_HEIGHT_M: float = 8434.0
+"""Scale height of surface pressure, R T / (M g) at 288.15 K (U.S. Standard Atmosphere 1976 sea-level
+temperature, M = 0.0289644 kg/mol, g = 9.80665 m/s^2): a site at elevation z has p/p0 = exp(-z / 8434 m),
+and its Rayleigh optical depth scales with p. [m]"""

@@ -14,7 +14,11 @@ from torch import Tensor
 
 from . import constants as C
 
-MIE_PHASES = ("cornette_shanks", "henyey_greenstein")
+MIE_PHASES = ("cornette_shanks", "henyey_greenstein", "two_term_hg")
+"""Aerosol phase functions by name (:func:`skyfit.scattering.phase.mie_phase`)."""
+MIE_PROFILES = ("exponential", "boundary_layer")
+"""Aerosol density profiles by name (:mod:`skyfit.atmosphere.profiles`): exp(-h / H_M), or 1 up to the
+mixing height h_mix and exp(-(h - h_mix) / H_M) above."""
 
 
 @dataclasses.dataclass
@@ -37,6 +41,13 @@ class Atmosphere:
         sun_angular_radius: [rad]
         mie_phase: one of MIE_PHASES.
         name: label for reports.
+        mie_g2: backward asymmetry g2 in (-1, 1) of the two-term Henyey-Greenstein phase, shape ();
+            required (and only used) when ``mie_phase == "two_term_hg"``; ``mie_g`` is its forward g1. [1]
+        mie_hg_weight: weight f in (0, 1] of the forward lobe, p = f HG(g1) + (1 - f) HG(g2), shape ();
+            with ``mie_g2``. [1]
+        mie_profile: one of MIE_PROFILES.
+        mie_mixing_height: top h_mix of the well-mixed aerosol layer, shape (); required (and only
+            used) when ``mie_profile == "boundary_layer"``. [m]
     """
 
     wavelengths: Tensor
@@ -55,6 +66,10 @@ class Atmosphere:
     sun_angular_radius: float = C.SUN_ANGULAR_RADIUS_RAD
     mie_phase: str = "cornette_shanks"
     name: str = "atmosphere"
+    mie_g2: Tensor | None = None
+    mie_hg_weight: Tensor | None = None
+    mie_profile: str = "exponential"
+    mie_mixing_height: Tensor | None = None
     config: dict | None = dataclasses.field(default=None, repr=False, compare=False)
     """The config this atmosphere was built from (None when built by hand); :func:`skyfit.fit` rebuilds it on
     the data's wavelengths, after checking that the atmosphere still equals it."""
@@ -107,6 +122,22 @@ class Atmosphere:
             raise ValueError(f"mie_g must be in the open interval (-1, 1), got {g.detach().cpu().numpy()}")
         if self.mie_phase not in MIE_PHASES:
             raise ValueError(f"mie_phase must be one of {MIE_PHASES}, got {self.mie_phase!r}")
+        if self.mie_phase == "two_term_hg":
+            for name, lo, hi, closed in (("mie_g2", -1.0, 1.0, False), ("mie_hg_weight", 0.0, 1.0, True)):
+                v = getattr(self, name)
+                if not isinstance(v, Tensor) or v.numel() != 1:
+                    raise ValueError(f"mie_phase two_term_hg needs {name} as a scalar tensor, got {v!r}")
+                ok = bool(torch.isfinite(v).all()) and bool((v > lo).all()) and bool((v <= hi if closed else v < hi).all())
+                if not ok:
+                    raise ValueError(f"{name} must be in ({lo:g}, {hi:g}{']' if closed else ')'}, got {v.detach().cpu().numpy()}")
+        if self.mie_profile not in MIE_PROFILES:
+            raise ValueError(f"mie_profile must be one of {MIE_PROFILES}, got {self.mie_profile!r}")
+        if self.mie_profile == "boundary_layer":
+            h = self.mie_mixing_height
+            if not isinstance(h, Tensor) or h.numel() != 1:
+                raise ValueError(f"mie_profile boundary_layer needs mie_mixing_height as a scalar tensor [m], got {h!r}")
+            if not bool(torch.isfinite(h).all()) or bool((h <= 0).any()) or float(h.detach()) >= self.top_radius - self.bottom_radius:
+                raise ValueError(f"mie_mixing_height must be > 0 m and below the top of the atmosphere, got {float(h.detach())}")
         if self.ozone_absorption is not None:
             if self.ozone_absorption.shape != w or bool((self.ozone_absorption < 0).any()):
                 raise ValueError("ozone_absorption must be >= 0 with one value per wavelength")
@@ -121,6 +152,23 @@ class Atmosphere:
     def scale_heights(self) -> Tensor:
         """(H_R, H_M) stacked, shape (2,). [m]"""
         return torch.stack([self.rayleigh_scale_height.reshape(()), self.mie_scale_height.reshape(())])
+
+    @property
+    def mixing_heights(self) -> dict[int, Tensor] | None:
+        """Boundary-layer tops by layer index of :attr:`scale_heights` ({1: h_mix} for a boundary-layer
+        aerosol), None when every layer is exponential; what the integrators'
+        :meth:`~skyfit.transmittance.base.OpticalDepthIntegrator.prepare_layers` take. [m]"""
+        if self.mie_profile == "exponential":
+            return None
+        return {1: self.mie_mixing_height.reshape(())}
+
+    @property
+    def mie_column_height(self) -> Tensor:
+        """Vertical column of the aerosol's relative density, int_0^inf rho dh (flat Earth, no top): H_M for
+        the exponential profile, h_mix + H_M for the boundary layer; AOD = beta x this, shape (). [m]"""
+        if self.mie_profile == "boundary_layer":
+            return self.mie_mixing_height.reshape(()) + self.mie_scale_height.reshape(())
+        return self.mie_scale_height.reshape(())
 
     @property
     def extinction_matrix(self) -> Tensor:
@@ -173,7 +221,8 @@ def angstrom_extinction(wavelengths_nm: Tensor, beta: float | Tensor, alpha: flo
         wavelengths_nm: shape (W,). [nm]
         beta: Angstrom turbidity (optical depth at 1 um). [1]
         alpha: Angstrom exponent. [1]
-        scale_height_m: aerosol scale height. [m]
+        scale_height_m: aerosol scale height H, or the vertical column of the layer's relative density
+            (h_mix + H for the boundary-layer profile, :attr:`Atmosphere.mie_column_height`). [m]
 
     Returns:
         Extinction coefficient at sea level, shape (W,). [1/m]

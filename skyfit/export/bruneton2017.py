@@ -141,6 +141,10 @@ def bruneton2017_textures(tables: PrecomputedAtmosphere, atm_rgb: Atmosphere | N
         constants for the GLSL header and lut.json (SI units).
     """
     atm = tables.atm
+    if atm.mie_phase not in ("cornette_shanks", "henyey_greenstein"):
+        raise ValueError(f"Bruneton 2017's shader evaluates a one-lobe Mie phase (Cornette-Shanks or Henyey-Greenstein, "
+                         f"one MIE_G); the {atm.mie_phase} phase has no place in its layout: export skyfit's own layout "
+                         "(export-lut without --format bruneton2017), whose tables keep the phase out")
     m = rgb_matrix(atm.wavelengths).numpy() / MAX_LUMINOUS_EFFICACY  # (W, 3): spectrum -> sRGB without 683
     s = tables.sizes
     with torch.no_grad():

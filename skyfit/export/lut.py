@@ -138,7 +138,14 @@ def _lut_json(tables: PrecomputedAtmosphere, atm: Atmosphere, fmt: str, rgb: boo
             "irradiance": "W/(m^2 nm) on a horizontal surface, orders 1..N-1",
             "rgb": "the same quantities through the matrix of rgb_conversion (nm-integrated, photometric via 683 lm/W)",
         },
-        "phase": {"rayleigh": "3 / (16 pi) (1 + nu^2)", "mie": atm.mie_phase, "mie_g": float(atm.mie_g)},
+        "phase": {"rayleigh": "3 / (16 pi) (1 + nu^2)", "mie": atm.mie_phase, "mie_g": float(atm.mie_g),
+                  **({"mie_g2": float(atm.mie_g2), "mie_hg_weight": float(atm.mie_hg_weight),
+                      "mie_formula": "f HG(mie_g) + (1 - f) HG(mie_g2), f = mie_hg_weight"}
+                     if atm.mie_phase == "two_term_hg" else {})},
+        "mie_profile": {"name": atm.mie_profile,
+                        **({"mixing_height_m": float(atm.mie_mixing_height),
+                            "density": "1 for h <= mixing_height_m, exp(-(h - mixing_height_m) / mie_scale_height) above"}
+                           if atm.mie_profile == "boundary_layer" else {"density": "exp(-h / mie_scale_height)"})},
         "extinction_1_per_m": {"rayleigh": atm.rayleigh_scattering.detach().cpu().tolist(),
                                "mie": atm.mie_extinction.detach().cpu().tolist(),
                                "ozone": extinction_matrix3(atm)[2].detach().cpu().tolist()},
@@ -270,7 +277,7 @@ def _atmosphere_from_summary(d: dict, dtype, device) -> Atmosphere:
             kw[k] = float(v)
         elif k == "ozone_layer_m":
             kw[k] = tuple(float(x) for x in v)
-        elif k in ("mie_phase", "name"):
+        elif k in ("mie_phase", "mie_profile", "name"):
             kw[k] = v
         else:
             kw[k] = T(v)

@@ -87,7 +87,11 @@ def unreal_parameters(atm_rgb: Atmosphere) -> dict:
         notes.append(f"ozone tent {lo:g}-{peak:g}-{hi:g} km is asymmetric; Unreal's is symmetric: width {width:g} km")
     mg = float(atm_rgb.mie_g)
     if atm_rgb.mie_phase != "henyey_greenstein":
-        notes.append(f"Mie phase {atm_rgb.mie_phase}: Unreal evaluates Henyey-Greenstein with the same g")
+        notes.append(f"Mie phase {atm_rgb.mie_phase}: Unreal evaluates Henyey-Greenstein with the same g"
+                     + (" (the forward lobe g1; the backward lobe is dropped)" if atm_rgb.mie_phase == "two_term_hg" else ""))
+    if atm_rgb.mie_profile != "exponential":
+        notes.append(f"Mie profile {atm_rgb.mie_profile} (mixing height {float(atm_rgb.mie_mixing_height):g} m): "
+                     "Unreal's aerosol is exponential from the ground with the same scale height")
     if not 0.0 <= mg <= 0.999:
         notes.append(f"mie_g {mg:.4g} outside Unreal's MieAnisotropy range [0, 0.999]: clamped")
     mg_u = min(max(mg, 0.0), 0.999)

@@ -27,7 +27,8 @@ equals the per-walker one to rounding (tests/test_sample.py checks 1e-10).
 
 Supported: single scattering (orders 1) with the ``chapman`` or a quadrature
 (``gauss``, ``trapezoid``, ``midpoint``, ``simpson``) optical-depth integrator, and
-fixed sun offsets (they move the geometry). Anything else: :meth:`BatchedLikelihood.supported`
+fixed sun offsets (they move the geometry), with the one-lobed Mie phases and the exponential
+aerosol profile (not ``two_term_hg`` nor ``boundary_layer``, docs/aerosol.md). Anything else: :meth:`BatchedLikelihood.supported`
 says why, and :class:`~skyfit.fit.sample.LogPosterior` loops over the walkers instead.
 
 ``torch.func.vmap`` over :meth:`FitProblem.objective` is not an option: the objective
@@ -127,6 +128,11 @@ class BatchedLikelihood:
         if not isinstance(m.integrator, (ChapmanOpticalDepth, QuadratureOpticalDepth)):
             return f"integrator {m.integrator.name!r} (batched: chapman, gauss, trapezoid, midpoint, simpson)"
         free = set(problem.param.free)
+        touched = free | set(problem.param._overridden)
+        if problem.param.base.mie_phase == "two_term_hg" or touched & {"mie_g2", "mie_hg_weight"}:
+            return "the two-term Henyey-Greenstein phase (the batched Mie phase is one-lobed)"
+        if problem.param.boundary_layer():
+            return "the boundary-layer aerosol profile (the batched columns are exponential)"
         if free & set(ORIENTATION):
             return f"free {sorted(free & set(ORIENTATION))} move the view geometry"
         response = {n for n in CAMERA_RESPONSE if n in free or problem.param.values[n] != problem.param.defaults[n]}

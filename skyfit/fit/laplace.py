@@ -127,7 +127,8 @@ def laplace_summary(problem: FitProblem, x: Tensor) -> dict:
     out = {
         "names": names,
         "values": {n: float(v) for n, v in zip(names, vals)},
-        "sigma": {n: float(s) for n, s in zip(names, s_v)},
+        # a variance the Hessian does not make positive is unknown, not zero
+        "sigma": {n: (float(s) if pd and float(s) > 0 else None) for n, s in zip(names, s_v)},
         "sigma_unconstrained": {n: float(s) for n, s in zip(names, s_x)},
         "correlation": corr.tolist(),
         "covariance": cov_v.tolist(),

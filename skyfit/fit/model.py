@@ -21,7 +21,7 @@ from ..atmosphere import Atmosphere
 from ..camera.fisheye import zenith_azimuth_to_enu
 from ..camera.sensor import spectral_response_matrix
 from ..render.colour import xyz_to_srgb_matrix, spectral_to_xyz_matrix
-from ..transmittance import OpticalDepthIntegrator
+from ..transmittance import OpticalDepthIntegrator, prepare_columns
 from .data import DataError, Observation
 from .losses import Loss
 from .parameters import FitError, Parameterisation
@@ -96,7 +96,7 @@ class SkyModel:
         from ..scattering.multiple import precompute
 
         sizes = TableSizes(*(self.table_sizes or self.REDUCED_TABLES))
-        return precompute(atm, orders=self.orders, sizes=sizes)
+        return precompute(atm, orders=self.orders, sizes=sizes, progress=False)  # once per loss evaluation: no bar
 
     def renderer(self, atm: Atmosphere, altitude_m: float = 0.0, tables=None) -> Renderer:
         """A function ``(directions (N, 3), sun (3,) or (N, 3)) -> radiance (N, W)`` for ``atm``.
@@ -118,7 +118,7 @@ class SkyModel:
                                       ground=self.ground)
 
             return render_ms
-        column_fn = self.integrator.prepare(atm.scale_heights, atm.bottom_radius, atm.top_radius)
+        column_fn = prepare_columns(self.integrator, atm)
 
         def render(directions: Tensor, sun: Tensor) -> Tensor:
             return render_vectors(
@@ -191,6 +191,9 @@ class FitProblem:
         ]
         self.n_elements = sum(int(o.mask.sum()) * len(o.channels) for o in self.observations)
         self.n_evaluations = 0
+        self.frozen_tables = None
+        """Multiple-scattering tables to use instead of rebuilding them per evaluation (a lagged fit:
+        :func:`skyfit.fit.photo.fit_scene` freezes Hillaire's LUT at each pass's start and refreshes it)."""
 
     # -- forward ----------------------------------------------------------------
     def sun_vectors(self, phys: dict, i: int) -> Tensor:
@@ -220,7 +223,8 @@ class FitProblem:
         """Model spectral radiance for every used sample of each observation (N_i, W), no exposure."""
         atm = self.param.atmosphere(phys) if atm is None else atm
         out, renderers = [], {}
-        tables = self.model.tables(atm)  # once per atmosphere, shared by every altitude (None: single scattering)
+        # once per atmosphere, shared by every altitude (None: single scattering); or frozen by the caller
+        tables = self.model.tables(atm) if self.frozen_tables is None else self.frozen_tables
         for i, o in enumerate(self.observations):
             if o.altitude_m not in renderers:
                 renderers[o.altitude_m] = self.model.renderer(atm, o.altitude_m, tables)

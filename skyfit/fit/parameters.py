@@ -127,7 +127,8 @@ PARAMETERS: dict[str, ParameterSpec] = {
         ParameterSpec("mie_beta_550", "1/m", "log", 1e-5, 0.0, math.inf, (3e-6, 8e-5), prior=("loguniform", 1e-7, 1e-3),
                       description="sea-level aerosol extinction coefficient at 550 nm"),
         ParameterSpec("mie_aod_550", "1", "log", 0.1, 0.0, math.inf, (0.02, 0.4), prior=("loguniform", 1e-4, 5.0),
-                      description="aerosol optical depth at 550 nm, beta_550 x H_M (instead of mie_beta_550)"),
+                      description="aerosol optical depth at 550 nm, beta_550 x H_M, or beta_550 x (h_mix + H_M) for the "
+                                  "boundary layer (instead of mie_beta_550)"),
         ParameterSpec("mie_angstrom_alpha", "1", "interval", 1.0, -1.0, 4.0, (0.2, 1.8), prior="uniform",
                       description="Angstrom exponent: extinction ~ (lambda / 550 nm)^-alpha"),
         ParameterSpec("mie_ssa", "1", "interval", 1.0, 0.0, 1.0, (0.75, 0.98), prior="uniform",
@@ -135,7 +136,14 @@ PARAMETERS: dict[str, ParameterSpec] = {
         ParameterSpec("mie_scale_height", "m", "loginterval", 1.0, 10.0, 20_000.0, (700.0, 2500.0), prior="loguniform",
                       description="aerosol density scale height, within 10 m - 20 km"),
         ParameterSpec("mie_g", "1", "interval", 1.0, -1.0, 1.0, (0.55, 0.85), prior="uniform",
-                      description="aerosol phase-function asymmetry"),
+                      description="aerosol phase-function asymmetry (the forward lobe g1 of two_term_hg)"),
+        ParameterSpec("mie_g2", "1", "interval", 1.0, -1.0, 0.0, (-0.5, -0.1), prior="uniform",
+                      description="backward lobe g2 of the two-term Henyey-Greenstein phase (makes the phase two_term_hg)"),
+        ParameterSpec("mie_hg_weight", "1", "interval", 1.0, 0.0, 1.0, (0.8, 0.98), prior="uniform",
+                      description="weight f of the forward lobe: f HG(mie_g) + (1 - f) HG(mie_g2) (makes the phase two_term_hg)"),
+        ParameterSpec("mie_mixing_height", "m", "loginterval", 1.0, 10.0, 5000.0, (200.0, 2000.0), prior="loguniform",
+                      description="aerosol boundary-layer top: density 1 below, exp(-(h - h_mix) / H_M) above "
+                                  "(makes the profile boundary_layer)"),
         ParameterSpec("ground_albedo", "1", "interval", 1.0, 0.0, 1.0, (0.05, 0.35), prior="uniform",
                       description="grey Lambertian ground albedo (replaces the config's spectrum)"),
         ParameterSpec("ground_albedo_scale", "1", "interval", 1.0, 0.0, math.inf, (0.6, 1.4),
@@ -176,6 +184,17 @@ CAMERA_RESPONSE: tuple[str, ...] = ("gain_red", "gain_blue", "vignetting")
 DEFAULT_PER_OBSERVATION: tuple[str, ...] = ("exposure",) + ORIENTATION + ("gain_red", "gain_blue")
 """Nuisance parameters that take one value per observation unless the config says otherwise
 (``vignetting``, a property of the lens, and ``noise_scale`` are shared)."""
+
+TWO_TERM_HG: tuple[str, ...] = ("mie_g2", "mie_hg_weight")
+"""Parameters of the two-term Henyey-Greenstein phase: free or set, they make the phase ``two_term_hg`` (g1 = mie_g)."""
+MIE_G2_DEFAULT: float = -0.3
+"""Start of mie_g2 when the config's phase is single-lobed [1]: a weak backward lobe (Kattawar 1975's fits to Mie
+phase functions of haze have g2 of -0.2 to -0.6)."""
+MIE_HG_WEIGHT_DEFAULT: float = 0.9
+"""Start of mie_hg_weight when the config's phase is single-lobed [1]: mostly the forward lobe (close to the config's HG)."""
+MIE_MIXING_HEIGHT_DEFAULT: float = 200.0
+"""Start of mie_mixing_height when the config's aerosol is exponential [m]: a shallow layer, close to that profile
+(h_mix -> 0 is the exponential)."""
 
 _NUISANCE_DEFAULTS = {"exposure": 1.0, "noise_scale": 1.0, **{n: 0.0 for n in ORIENTATION},
                       "gain_red": 1.0, "gain_blue": 1.0, "vignetting": 0.0}
@@ -316,11 +335,15 @@ class Parameterisation:
             "rayleigh_scale": 1.0,
             "rayleigh_scale_height": float(base.rayleigh_scale_height),
             "mie_beta_550": b550,
-            "mie_aod_550": b550 * float(base.mie_scale_height),
+            "mie_aod_550": b550 * float(base.mie_column_height),
             "mie_angstrom_alpha": alpha0,
             "mie_ssa": float(ratio.mean()) if bool((ext > 0).any()) else 0.9,
             "mie_scale_height": float(base.mie_scale_height),
             "mie_g": float(base.mie_g),
+            "mie_g2": float(base.mie_g2) if base.mie_g2 is not None else MIE_G2_DEFAULT,
+            "mie_hg_weight": float(base.mie_hg_weight) if base.mie_hg_weight is not None else MIE_HG_WEIGHT_DEFAULT,
+            "mie_mixing_height": (float(base.mie_mixing_height) if base.mie_mixing_height is not None
+                                  else MIE_MIXING_HEIGHT_DEFAULT),
             "ground_albedo": float(base.ground_albedo.mean()),
             "ground_albedo_scale": 1.0,
             "ozone_column": self._ozone_du if self._ozone_du is not None and self._ozone_du > 0 else 0.0,
@@ -330,6 +353,11 @@ class Parameterisation:
         self._overridden: set[str] = set()  # atmosphere parameters set away from the base (fixed overrides count)
         for name, v in (values or {}).items():
             self.set_value(name, v)
+        two_term = (set(self.free) | self._overridden) & set(TWO_TERM_HG)
+        if two_term and base.mie_phase == "cornette_shanks":
+            raise FitError(f"{', '.join(sorted(two_term))} (free or set) describe the two-term Henyey-Greenstein "
+                           f"phase, but config {base.name!r} has the Cornette-Shanks phase; set mie.phase to "
+                           "henyey_greenstein or two_term_hg")
 
         self.names: list[str] = []
         self._slots: dict[str, list[int]] = {}
@@ -447,6 +475,13 @@ class Parameterisation:
             kw["mie_scale_height"] = T(phys["mie_scale_height"]).reshape(())
         if "mie_g" in touched:
             kw["mie_g"] = T(phys["mie_g"]).reshape(())
+        if touched & set(TWO_TERM_HG):  # the phase becomes two-term HG (g1 = mie_g); the untouched one keeps its value
+            kw["mie_phase"] = "two_term_hg"
+            kw["mie_g2"] = T(phys["mie_g2"]).reshape(())
+            kw["mie_hg_weight"] = T(phys["mie_hg_weight"]).reshape(())
+        if "mie_mixing_height" in touched:  # the profile becomes a boundary layer
+            kw["mie_profile"] = "boundary_layer"
+            kw["mie_mixing_height"] = T(phys["mie_mixing_height"]).reshape(())
         if touched & {"mie_beta_550", "mie_aod_550", "mie_angstrom_alpha", "mie_ssa"}:
             ext = b.mie_extinction
             if touched & {"mie_beta_550", "mie_aod_550", "mie_angstrom_alpha"}:
@@ -471,18 +506,32 @@ class Parameterisation:
         except ValueError as e:  # cannot happen inside the transforms' ranges; name it if it does
             raise FitError(f"parameters give an invalid atmosphere: {e}") from None
 
+    def boundary_layer(self, touched: set[str] | None = None) -> bool:
+        """True when the aerosol has the boundary-layer profile (the config's, or ``mie_mixing_height`` free or set)."""
+        touched = set(self.free) | self._overridden if touched is None else touched
+        return self.base.mie_profile == "boundary_layer" or "mie_mixing_height" in touched
+
+    def _column_height(self, phys: Mapping[str, Tensor], touched: set[str] | None = None) -> Tensor:
+        """Vertical column of the aerosol's relative density [m]: H_M, or h_mix + H_M for the boundary layer
+        (:attr:`skyfit.atmosphere.Atmosphere.mie_column_height`)."""
+        if self.boundary_layer(touched):
+            return phys["mie_mixing_height"] + phys["mie_scale_height"]
+        return phys["mie_scale_height"]
+
     def _beta_550(self, phys: Mapping[str, Tensor], touched: set[str] | None = None) -> Tensor:
-        """Mie extinction at 550 nm [1/m]: from mie_aod_550 / H_M when the optical depth is fitted or set."""
+        """Mie extinction at 550 nm [1/m]: from mie_aod_550 / (column height) when the optical depth is fitted or
+        set (H_M, or h_mix + H_M for the boundary layer)."""
         touched = set(self.free) | self._overridden if touched is None else touched
         if "mie_aod_550" in touched:
-            return phys["mie_aod_550"] / phys["mie_scale_height"]
+            return phys["mie_aod_550"] / self._column_height(phys, touched)
         return phys["mie_beta_550"]
 
     def derived(self, phys: Mapping[str, Tensor]) -> dict[str, float]:
-        """Derived quantities for reports: aerosol optical depth and extinction at 550 nm (AOD = beta_550 H_M)."""
+        """Derived quantities for reports: aerosol optical depth and extinction at 550 nm
+        (AOD = beta_550 H_M; beta_550 (h_mix + H_M) for the boundary layer)."""
         with torch.no_grad():
             beta = self._beta_550(phys)
-            return {"mie_aod_550": float(beta * phys["mie_scale_height"]), "mie_beta_550": float(beta)}
+            return {"mie_aod_550": float(beta * self._column_height(phys)), "mie_beta_550": float(beta)}
 
     def nuisance(self, phys: Mapping[str, Tensor], i: int) -> dict[str, Tensor]:
         """Observation ``i``'s nuisance values (shape ()) from :meth:`to_physical`'s dict."""

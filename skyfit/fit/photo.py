@@ -40,6 +40,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from ..atmosphere.constants import PRESSURE_SCALE_HEIGHT_M
 from ..camera.autocal import CalibrationError, cameras_from_sun, detect_circle, detect_sun
 from ..camera.fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, zenith_azimuth_to_enu
 from ..camera.masks import grow_outlier_mask, obstacle_mask, sun_mask
@@ -51,8 +52,12 @@ from .optimise import fit as optimise
 from .parameters import FitError
 from .problem import fit_settings, prepare
 
-TARGET_SAMPLES = 2500
+TARGET_SAMPLES = 1000
 """About this many blocks inside the lens circle are fitted, whatever the photo's size."""
+QUICK_SAMPLES = 400
+"""Blocks of the short fits that choose among projections or starting headings."""
+MS_REFRESHES = 4
+"""At most this many fits with the multiple-scattering tables frozen and refreshed (:func:`lagged_fit`)."""
 PHOTO_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "gain_red", "gain_blue", "vignetting",
               "sun_azimuth_offset", "camera_tilt_north", "camera_tilt_east")
 """Free parameters of a photo fit: the aerosol and the camera's nuisances. Rayleigh's scale stays at the
@@ -60,8 +65,8 @@ config's (a photo of unknown exposure and white balance hardly separates it from
 ``free=``); the aerosol's scale height stays at the config's (a ground photo sees the column, not its shape)."""
 CALIBRATED_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "sun_azimuth_offset")
 """Free parameters when the camera is given (``camera=``): its geometry, gains and vignetting are known."""
-PHOTO_SETTINGS = {"loss": "cauchy", "orders": 2, "multiple": "hillaire", "lut_size": [16, 16], "lut_directions": 32,
-                  "lut_samples": 12, "starts": 1, "adam_steps": 30, "max_iter": 80}
+PHOTO_SETTINGS = {"loss": "cauchy", "orders": 2, "multiple": "hillaire", "starts": 1, "adam_steps": 30, "max_iter": 80,
+                  "initial": {"mie_aod_550": 0.1, "mie_angstrom_alpha": 1.0, "mie_g": 0.7}}
 """Fit settings of a photo unless the config's ``fit:`` section or keywords say otherwise: a robust loss
 (obstacles the masks miss), two orders (Hillaire's LUT) since multiple scattering brightens the horizon of a
 hazy sky by tens of percent."""
@@ -224,25 +229,28 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
     t1 = _now()
     candidates, circle, detected = [], None, None
     inside_valid = photo.valid
-    if camera is None:
-        circle = detect_circle(_luminance(np.where(np.isfinite(photo.rgb), photo.rgb, 0.0)), photo.valid)
-        inside = _disc(h, w, circle.cx, circle.cy, circle.radius)
-        detected = detect_sun(photo.darkest, photo.darkest_saturated, inside & inside_valid)
-        candidates = cameras_from_sun((h, w), circle, detected, sz, sa, projections=tuple(projections))
-        cam = candidates[0].camera
-        for c in candidates[:1]:
-            notes.extend(c.notes)
-    else:
-        if isinstance(camera, (str, Path)):
-            camera = read_camera(camera)
-        cam = camera if isinstance(camera, FisheyeCamera) else camera_from_dict(camera, (h, w))
-        if tuple(cam.shape) != (h, w):
-            raise PhotoFitError(f"photo {src}: the camera is for {cam.height}x{cam.width} images, the photo is {h}x{w}")
-        detected = detect_sun(photo.darkest, photo.darkest_saturated, cam.valid_mask().numpy() & inside_valid)
-    seconds["calibrate"] = _now() - t1
-    if detected is None:
-        notes.append("the sun is not seen in the photo (hidden or outside the view): the heading comes from the sky pattern")
-    masks = scene_masks(photo, cam, detected, sz, sa, mask)
+    try:
+        if camera is None:
+            circle = detect_circle(_luminance(np.where(np.isfinite(photo.rgb), photo.rgb, 0.0)), photo.valid)
+            inside = _disc(h, w, circle.cx, circle.cy, circle.radius)
+            detected = detect_sun(photo.darkest, photo.darkest_saturated, inside & inside_valid)
+            candidates = cameras_from_sun((h, w), circle, detected, sz, sa, projections=tuple(projections))
+            cam = candidates[0].camera
+            for c in candidates[:1]:
+                notes.extend(c.notes)
+        else:
+            if isinstance(camera, (str, Path)):
+                camera = read_camera(camera)
+            cam = camera if isinstance(camera, FisheyeCamera) else camera_from_dict(camera, (h, w))
+            if tuple(cam.shape) != (h, w):
+                raise PhotoFitError(f"photo {src}: the camera is for {cam.height}x{cam.width} images, the photo is {h}x{w}")
+            detected = detect_sun(photo.darkest, photo.darkest_saturated, cam.valid_mask().numpy() & inside_valid)
+        seconds["calibrate"] = _now() - t1
+        if detected is None:
+            notes.append("the sun is not seen in the photo (hidden or outside the view): the heading comes from the sky pattern")
+        masks = scene_masks(photo, cam, detected, sz, sa, mask)
+    except CalibrationError as e:
+        raise PhotoFitError(f"photo {src}: {e}") from None
     if not bool((~_union(masks)).any()):
         raise PhotoFitError(f"photo {src}: no sky pixel left (the lens circle, horizon, sun and masks cover everything)")
     return PhotoScene(photo, sz, sa, float(sp.distance_au), when.isoformat(),
@@ -329,13 +337,14 @@ def _blocks(a: np.ndarray, step: int, h: int, w: int) -> np.ndarray:
     return a.reshape(h, step, w, step, *rest).swapaxes(1, 2).reshape(h, w, step * step, *rest)
 
 
-def block_image(scene: PhotoScene, step: int | None = None, exclude: np.ndarray | None = None) -> BlockImage:
-    """Average the photo over blocks of ``step`` px (None: about :data:`TARGET_SAMPLES` inside the circle)."""
+def block_image(scene: PhotoScene, step: int | None = None, exclude: np.ndarray | None = None,
+                target: int = TARGET_SAMPLES) -> BlockImage:
+    """Average the photo over blocks of ``step`` px (None: about ``target`` blocks inside the circle)."""
     ph, cam = scene.photo, scene.camera
     H, W = ph.rgb.shape[:2]
     inside = ~scene.masks["outside"]
     if step is None:
-        step = max(1, int(round(math.sqrt(float(inside.sum()) / TARGET_SAMPLES))))
+        step = max(1, int(round(math.sqrt(float(inside.sum()) / target))))
     h, w = H // step, W // step
     if h < 4 or w < 4:
         raise PhotoFitError(f"photo {ph.source}: {H}x{W} px is too small to fit (blocks of {step} px)")
@@ -472,38 +481,34 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     s = photo_settings(config, overrides, calibrated)
     fixed = _fixed_camera_values(camera_meta)
     free = [n for n in s.free if n not in fixed]
-    s = dataclasses.replace(s, free=free, initial={**fixed, **s.initial})
+    # the Rayleigh optical depth of a site follows its surface pressure, exp(-elevation / 8434 m)
+    site = {"rayleigh_scale": math.exp(-float(scene.location.get("elevation_m", 0.0)) / PRESSURE_SCALE_HEIGHT_M)}
+    s = dataclasses.replace(s, free=free, initial={**site, **fixed, **s.initial})
     response = None
     if camera_meta and camera_meta.get("spectral_sensitivities"):
         response = read_sensitivities(camera_meta["spectral_sensitivities"])
     timings = dict(scene.seconds)
 
-    def run(sc: PhotoScene, exclude=None, start=None, settings=s):
-        blocks = block_image(sc, exclude=exclude)
+    def run(sc: PhotoScene, exclude=None, start=None, settings=s, target=TARGET_SAMPLES, refreshes=MS_REFRESHES):
+        blocks = block_image(sc, exclude=exclude, target=target)
         obs = block_observation(sc, blocks, blocks.usable, sigma_relative=settings.sigma_relative
                                 if "sigma_relative" in (overrides or {}) else SIGMA_RELATIVE, response=response)
         prep = prepare([obs], config, settings, device=device)
-        values = {**settings.initial, **(start or {})}
-        problem = prep.problem(settings.free, settings.per_observation, values)
-        x0 = problem.param.initial_vector(problem.param.base.dtype, problem.param.base.device)
-        x0 = problem.profile_exposure(x0)
-        for n in problem.param.free:
-            problem.param.set_value(n, problem.param.physical_dict(x0)[n])
-        res = optimise(problem, settings.options(progress))
-        return blocks, prep, problem, res
+        problem = prep.problem(settings.free, settings.per_observation, {**settings.initial, **(start or {})})
+        return blocks, prep, problem, lagged_fit(problem, settings.options(progress), refreshes)
 
     # the projection by evidence: candidates the sun alone cannot tell apart are fitted and scored by their loss
     if scene.candidates and choose_projection:
         best = scene.candidates[0]
         close = [c for c in scene.candidates if c.score - best.score < 1.0 or scene.detected_sun is None]
         if len(close) > 1:
-            quick = dataclasses.replace(s, max_iter=25, adam_steps=15)
+            quick = dataclasses.replace(s, max_iter=min(s.max_iter, 25), adam_steps=min(s.adam_steps, 15))
             scores = []
             for c in close:
                 sc = dataclasses.replace(scene, camera=c.camera, masks=scene_masks(scene.photo, c.camera, scene.detected_sun,
                                                                                     scene.sun_zenith_deg, scene.sun_azimuth_deg,
                                                                                     scene.masks.get("user")))
-                _, _, _, r = run(sc, settings=quick)
+                _, _, _, r = run(sc, settings=quick, target=QUICK_SAMPLES, refreshes=1)
                 scores.append(r.loss)
             k = int(np.argmin(scores))
             scene.notes.append("projection chosen by the fit's loss among " + ", ".join(
@@ -519,10 +524,10 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     # heading from the sky pattern when the sun is not seen: several starting headings, the best loss wins
     start = None
     if scene.detected_sun is None and "sun_azimuth_offset" in s.free and not calibrated:
-        quick = dataclasses.replace(s, max_iter=25, adam_steps=15)
+        quick = dataclasses.replace(s, max_iter=min(s.max_iter, 25), adam_steps=min(s.adam_steps, 15))
         tries = []
         for deg in (0.0, 90.0, 180.0, 270.0):
-            _, _, _, r = run(scene, start={"sun_azimuth_offset": math.radians(deg)}, settings=quick)
+            _, _, _, r = run(scene, start={"sun_azimuth_offset": math.radians(deg)}, settings=quick, target=QUICK_SAMPLES, refreshes=1)
             tries.append((r.loss, deg))
         start = {"sun_azimuth_offset": math.radians(min(tries)[1])}
     t1 = _now()
@@ -536,7 +541,8 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         if grown.any():
             scene.masks["outliers"] = grown & ~scene.excluded
             start2 = {n: v for n, v in problem.param.physical_dict(res.x).items() if n in s.free}
-            blocks, prep, problem, res = run(scene, start=start2)
+            blocks, prep, problem, res = run(scene, start=start2, settings=dataclasses.replace(s, adam_steps=0, starts=1),
+                                             refreshes=2)
         timings["fit_pass2"] = _now() - t2
     t3 = _now()
     result = photo_result(scene, blocks, prep, problem, res, config, laplace=laplace)
@@ -546,6 +552,49 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     model_rgb = predict_blocks(problem, res.x, blocks, scene, blocks.sky | blocks.candidate)
     return PhotoFit(result, problem, res.x, scene, blocks, blocks.usable, model_rgb,
                     camera_from_result(scene.camera, problem.param.physical_dict(res.x)))
+
+
+def _start_at(problem: FitProblem, x: torch.Tensor) -> None:
+    """Make ``x`` the problem's starting point (its free values)."""
+    vals = problem.param.physical_dict(x)
+    for n in problem.param.free:
+        problem.param.set_value(n, vals[n])
+
+
+def freeze_tables(problem: FitProblem, x: torch.Tensor) -> None:
+    """Build the problem's multiple-scattering tables at ``x`` (no gradient) and use them until refreshed."""
+    problem.frozen_tables = None
+    if problem.model.orders > 1:
+        with torch.no_grad():
+            problem.frozen_tables = problem.model.tables(problem.param.atmosphere(problem.param.to_physical(x)))
+
+
+def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol: float = 1e-3):
+    """Fit with the multiple-scattering tables frozen, refreshed at each fit's result until the values settle.
+
+    Hillaire's term is sigma_s(y) Psi_ms(h, mu_s) E_sun (:mod:`skyfit.scattering.hillaire`): with Psi frozen the
+    scattering coefficients, transmittances and single scattering stay live and differentiable; Psi, a second-order
+    effect of the parameters, follows them from one fit to the next (a lagged fixed point). Rebuilding and
+    differentiating the LUT per evaluation cost 3-5x a single-scattering evaluation of a photo's blocks
+    (docs/photos.md). The tables are left at the final values, so metrics and Laplace see the fitted model
+    (the Laplace Hessian then omits Psi's own dependence on the parameters). ``tol``: largest change of an
+    unconstrained value that ends the refreshes.
+    """
+    x = problem.param.initial_vector(problem.param.base.dtype, problem.param.base.device)
+    freeze_tables(problem, x)
+    _start_at(problem, problem.profile_exposure(x))
+    res = None
+    for k in range(max(1, refreshes)):
+        res = optimise(problem, options)
+        moved = float((res.x - x).abs().max())
+        x = res.x.detach()
+        freeze_tables(problem, x)
+        if problem.model.orders == 1 or (k > 0 and moved < tol):
+            break
+        _start_at(problem, x)
+        options = dataclasses.replace(options, adam_steps=0, starts=1)  # near the optimum: L-BFGS alone
+    res.convergence["ms_refreshes"] = k + 1
+    return res
 
 
 def _upsample(a: np.ndarray, step: int, shape: tuple[int, int]) -> np.ndarray:
@@ -759,11 +808,16 @@ def run_photo_fit(photo: str | Path, config: dict, out: str | Path, *, time: str
         photo = ph
     pf = fit_photo(photo, time=time, location=location, config=config, camera=camera, mask=user_mask, exposures=exposures,
                    linear=linear, response=response, overrides=overrides, laplace=laplace, progress=progress, device=device)
+    png = out.with_suffix(".png")
     if plots:
-        png = out.with_suffix(".png")
         report_png(pf, png)
         pf.result["plots"] = [str(png)]
-    save_result(pf.result, out)
+    try:
+        save_result(pf.result, out)
+    except BaseException:
+        if plots:  # no RESULT.png without its RESULT.json
+            png.unlink(missing_ok=True)
+        raise
     return pf.result
 
 

@@ -12,6 +12,8 @@ rung               what changes                                           parame
 ``multiple``       + multiple scattering (SkyModel ``orders`` 1 -> 2)      --
 ``ground_albedo``  + a fitted grey ground albedo                          ground_albedo
 ``scale_heights``  free instead of fixed scale heights                    rayleigh_scale_height, mie_scale_height
+``two_term_hg``    + a backward lobe: f HG(g1) + (1 - f) HG(g2)           mie_g2, mie_hg_weight
+``boundary_layer`` + aerosol density 1 up to h_mix, exponential above     mie_mixing_height
 ``height_fog``     flat-Earth height-fog optical depth (Ishiyama 2018)    -- (only where the scene qualifies)
 =================  =====================================================  ===========================================
 
@@ -24,7 +26,8 @@ every later rung ("the ladder drops it"). Then, backward, each component of the 
 is removed in turn while that does not raise BIC by 2 or more (a component taken early as a
 stand-in for a later one is dropped again). Every rung is nested in the rungs built on it
 (Mie off is beta_M = 0, ozone off is a zero column, single scattering is the multiple term
-switched off). The chosen model is the last accepted one: the lowest BIC, unless a bigger
+switched off; the two-term phase is the single lobe at f -> 1 and the boundary layer the exponential
+at h_mix -> 0, limits of their open ranges). The chosen model is the last accepted one: the lowest BIC, unless a bigger
 model is lower by less than 2.
 
 Criterion (Schwarz 1978)::
@@ -118,6 +121,10 @@ RUNGS: tuple[Rung, ...] = (
     Rung("ground_albedo", "+ fitted grey ground albedo (else the config's)", ("ground_albedo",)),
     Rung("scale_heights", "free Rayleigh and aerosol scale heights (else the config's)",
          ("rayleigh_scale_height", "mie_scale_height")),
+    Rung("two_term_hg", "+ a backward lobe of the aerosol phase: two-term Henyey-Greenstein (g1 = mie_g)",
+         ("mie_g2", "mie_hg_weight")),
+    Rung("boundary_layer", "+ a well-mixed aerosol layer: density 1 up to a mixing height, exponential above",
+         ("mie_mixing_height",)),
     Rung("height_fog", "flat-Earth height-fog optical depth (Ishiyama 2018), short-range scenes only", (),
          {"integrator": "height_fog"}),
 )

@@ -1,7 +1,10 @@
 """Phase functions, single scattering, and multiple scattering (Bruneton tables, Hillaire LUT)."""
 from .bruneton_tables import TableSizes
 from .multiple import PrecomputedAtmosphere, Quadrature, precompute, sky_radiance
-from .phase import PHASE_FUNCTIONS, cornette_shanks_phase, henyey_greenstein_phase, mie_phase, rayleigh_phase
+from .phase import (
+    PHASE_FUNCTIONS, atmosphere_mie_phase, cornette_shanks_phase, henyey_greenstein_phase, mie_phase, rayleigh_phase,
+    two_term_hg_phase,
+)
 from .single import single_scattering, sun_visible_fraction, transmittance_to_sun, view_ray_samples
 
 __all__ = [
@@ -9,6 +12,7 @@ __all__ = [
     "PrecomputedAtmosphere",
     "Quadrature",
     "TableSizes",
+    "atmosphere_mie_phase",
     "cornette_shanks_phase",
     "henyey_greenstein_phase",
     "mie_phase",
@@ -18,5 +22,6 @@ __all__ = [
     "sky_radiance",
     "sun_visible_fraction",
     "transmittance_to_sun",
+    "two_term_hg_phase",
     "view_ray_samples",
 ]

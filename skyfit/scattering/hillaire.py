@@ -40,10 +40,10 @@ from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from ..atmosphere import Atmosphere
-from ..atmosphere.profiles import profile_densities
+from ..atmosphere.profiles import profile_densities, with_mie_profile
 from ..geometry import distance_to_bottom, distance_to_top, point_along_ray, ray_hits_ground, sun_cosine_along_ray
 from ..quadrature import nodes_weights, validate_rule
-from ..transmittance import ColumnFn, OpticalDepthIntegrator
+from ..transmittance import ColumnFn, OpticalDepthIntegrator, prepare_columns
 from .bruneton_tables import TableSizes, extinction_matrix3
 from .multiple import _columns, _Ctx, transmittance_columns_table
 from .single import path_columns, path_extinction, single_scattering, sun_ray_cosine, sun_visible_fraction, view_ray_samples
@@ -203,13 +203,13 @@ def hillaire_multiple(
     batch = r.shape
     r, mu, mu_s, nu = (t.reshape(-1) for t in (r, mu, mu_s, nu))
     if column_fn is None:
-        column_fn = integrator.prepare(atm.scale_heights, atm.bottom_radius, atm.top_radius)
+        column_fn = prepare_columns(integrator, atm)
     Rb = atm.bottom_radius
     x, w = nodes_weights(rule, view_samples, dtype, device)
     _, seg, r0, mu0, _, s, r_j, mus_j = view_ray_samples(atm, r, mu, mu_s, nu, x)
     # T(x, y) with the ozone column when the atmosphere has ozone (as in single scattering).
     trans = torch.exp(path_columns(column_fn, atm, r0.unsqueeze(-1), mu0.unsqueeze(-1), s) @ -path_extinction(atm))  # (n, N, W)
-    dens = torch.exp((r_j - Rb).unsqueeze(-1) * -(1.0 / atm.scale_heights))  # (n, N, 2)
+    dens = with_mie_profile(torch.exp((r_j - Rb).unsqueeze(-1) * -(1.0 / atm.scale_heights)), r_j - Rb, atm)  # (n, N, 2)
     sigma_s = dens @ torch.stack([atm.rayleigh_scattering, atm.mie_scattering])  # (n, N, W)
     psi = lookup_psi(lut, r_j, mus_j, Rb)
     wt = (w * seg.unsqueeze(-1)).unsqueeze(-1)
@@ -247,6 +247,6 @@ def hillaire_sky_radiance(
         Spectral radiance, shape (..., W). [W/(m^2 sr nm)]
     """
     lut = hillaire_lut(atm) if lut is None else lut
-    column_fn = integrator.prepare(atm.scale_heights, atm.bottom_radius, atm.top_radius)
+    column_fn = prepare_columns(integrator, atm)
     single = single_scattering(atm, r, mu, mu_s, nu, integrator, view_samples, rule, ground, sun_disk, column_fn=column_fn)
     return single + hillaire_multiple(atm, r, mu, mu_s, nu, integrator, view_samples, rule, lut, column_fn)

@@ -77,7 +77,7 @@ from .bruneton_tables import (
     transmittance_index,
     transmittance_texel_params,
 )
-from .phase import mie_phase, rayleigh_phase
+from .phase import atmosphere_mie_phase, rayleigh_phase
 from .single import sun_visible_fraction
 
 BELOW_MU_S_MIN = ("raise", "clamp", "zero")
@@ -280,7 +280,7 @@ def _order_radiance(ctx, tables: tuple[Tensor, ...], order: int, r, mu, mu_s, nu
     idx = _scat_index(ctx, r, mu, mu_s, nu, hits)
     if order == 1:
         s_r, s_m = interpolate(list(tables), idx)
-        return s_r * rayleigh_phase(nu).unsqueeze(-1) + s_m * mie_phase(nu, atm.mie_g, atm.mie_phase).unsqueeze(-1)
+        return s_r * rayleigh_phase(nu).unsqueeze(-1) + s_m * atmosphere_mie_phase(nu, atm).unsqueeze(-1)
     return interpolate(list(tables), idx)[0]
 
 
@@ -349,19 +349,43 @@ class _Geometry(NamedTuple):
     rays: tuple[Tensor, ...]  # _view_groups: r, mu, hits (G, 1); mu_s, nu (G, T)
     density_dirs: tuple[Tensor, Tensor]  # om (D, 3), dom (D,)
     density_nu: Tensor  # (G2, D) cosine between the incident direction and the sun
-    density_plan: tuple[Tensor, Tensor, tuple[int, ...]]  # scattering corners of the (G2, D) incident directions
+    density_plan: tuple[Tensor, Tensor, Tensor]  # where the (G2, D) incident directions sample the tables
     ground_plan: tuple[Tensor, Tensor, tuple[int, ...]]  # irradiance corners where those rays meet the ground
     ground_rays: tuple[Tensor, Tensor, Tensor]  # r, mu, hits of the incident rays, (G2, D)
     views: Tensor  # (G2, MU NU, 3) view directions of each (r, mu_s) group in the sun frame
     irradiance_nu: Tensor  # (n_irr, Dh)
-    irradiance_plan: tuple[Tensor, Tensor, tuple[int, ...]]  # scattering corners of the hemisphere directions
+    irradiance_plan: tuple[Tensor, Tensor, Tensor]  # where the hemisphere directions sample the tables
     irradiance_weight: Tensor  # (Dh,) omega_z d omega
+    sun_grid: Tensor | None  # (G, S, T) grid_sample coordinate of the mu_s of the Delta S samples
 
 
-def _plan(ctx: _Ctx, r, mu, mu_s, nu, hits) -> tuple[Tensor, Tensor, tuple[int, ...]]:
-    """Corners of a scattering-table lookup (int32 indices when they fit: half the memory)."""
-    ix, w, batch = corner_plan(ctx.sizes.scattering_shape, _scat_index(ctx, r, mu, mu_s, nu, hits))
-    return (ix.to(torch.int32) if ix.numel() and int(ix.max()) < 2**31 else ix), w, batch
+def _plan(ctx: _Ctx, r, mu, mu_s, nu, hits) -> tuple[Tensor, Tensor, Tensor]:
+    """Where a scattering-table lookup samples, for :func:`_sample_scattering` (2017's layout).
+
+    As 2017 GetScattering: the 4-D table is a 3-D texture (r, mu, nu block x mu_s) read at the
+    two nu blocks around the point and mixed linearly in nu; each read is a trilinear
+    ``grid_sample`` (no corner arrays). Returns the two grids (1, n, 1, 1, 3) and the nu
+    weight (n, 1) for the n = prod(batch) points.
+    """
+    R, MU, MUS, NU = ctx.sizes.scattering_shape
+    i_r, i_mu, i_mus, i_nu = (t.reshape(-1) for t in torch.broadcast_tensors(*_scat_index(ctx, r, mu, mu_s, nu, hits)))
+    i_nu = torch.clamp(i_nu, 0.0, float(NU - 1))
+    lo = torch.clamp(torch.floor(i_nu), 0.0, float(NU - 2))
+    col = torch.clamp(i_mus, 0.0, float(MUS - 1))
+    y, z = grid_coordinate(i_mu, MU), grid_coordinate(i_r, R)
+    grids = [torch.stack([grid_coordinate(b * MUS + col, NU * MUS), y, z], -1).view(1, -1, 1, 1, 3) for b in (lo, lo + 1.0)]
+    return grids[0], grids[1], (i_nu - lo).unsqueeze(-1)
+
+
+def _sample_scattering(tables, plan) -> list[Tensor]:
+    """Quadrilinear lookups of (R, MU, MU_S, NU, C) tables at a :func:`_plan`, each (n, C)."""
+    g0, g1, f = plan
+    R, MU, MUS, NU, _ = tables[0].shape
+    tex = torch.cat([t.permute(4, 0, 1, 3, 2) for t in tables], 0).reshape(1, -1, R, MU, NU * MUS)
+    v0, v1 = (F.grid_sample(tex, g, mode="bilinear", padding_mode="border", align_corners=True).reshape(tex.shape[1], -1).T
+              for g in (g0, g1))
+    v = v0 * (1.0 - f) + v1 * f
+    return list(v.split([t.shape[-1] for t in tables], -1))
 
 
 def _geometry(ctx: _Ctx, texels: ScatteringTexels, quad: Quadrature, orders: bool = True) -> _Geometry:
@@ -371,7 +395,7 @@ def _geometry(ctx: _Ctx, texels: ScatteringTexels, quad: Quadrature, orders: boo
     dtype, device = atm.dtype, atm.device
     R, MU, MUS, NU = sizes.scattering_shape
     if not orders:
-        return _Geometry(texels, _view_groups(texels), *([None] * 9))
+        return _Geometry(texels, _view_groups(texels), *([None] * 10))
     with torch.no_grad():
         # Delta J: incident directions of each (r, mu_s) group, g = ir * MUS + ims
         om, dom = _density_directions(quad, dtype, device)
@@ -408,8 +432,35 @@ def _geometry(ctx: _Ctx, texels: ScatteringTexels, quad: Quadrature, orders: boo
         nu_i = torch.clamp(ox * sin_i + oz * mus_i, -1.0, 1.0)
         rr_i, ss_i = r_i.expand_as(nu_i), mus_i.expand_as(nu_i)
         irradiance_plan = _plan(ctx, rr_i, oz.expand_as(nu_i), ss_i, nu_i, torch.zeros_like(nu_i, dtype=torch.bool))
-    return _Geometry(texels, _view_groups(texels), (om, dom), nu1, density_plan, ground_plan, (rr, cz, hits), views,
-                     nu_i, irradiance_plan, oz * dom_h)
+        rays = _view_groups(texels)
+        sun_grid = _sun_grid(ctx, rays, quad, 0, rays[0].shape[0])
+    return _Geometry(texels, rays, (om, dom), nu1, density_plan, ground_plan, (rr, cz, hits), views,
+                     nu_i, irradiance_plan, oz * dom_h, sun_grid)
+
+
+def _ray_samples(ctx: _Ctx, rays, quad: Quadrature, i: int, j: int) -> tuple[Tensor, Tensor, Tensor]:
+    """(d, r_d, mu_d), each (G, S): the Delta S samples of view rays i:j (as :func:`_group_ray_samples`)."""
+    atm = ctx.atm
+    r, mu, g = rays[0][i:j], rays[1][i:j], rays[2][i:j]
+    x, _ = _trapezoid(quad.multiple_samples, atm.dtype, atm.device)
+    d = _distance_to_boundary(r, mu, g, atm) * x
+    r_d = torch.clamp(torch.sqrt(torch.clamp_min(d * d + 2.0 * r * mu * d + r * r, 0.0)), atm.bottom_radius, atm.top_radius)
+    mu_d = torch.clamp((r * mu + d) / r_d, -1.0, 1.0)
+    return d, r_d, mu_d
+
+
+def _sun_grid(ctx: _Ctx, rays, quad: Quadrature, i: int, j: int) -> Tensor:
+    """grid_sample coordinate on the mu_s axis of the Delta S samples of view rays i:j, (G, S, T)."""
+    MUS = ctx.sizes.scattering_mu_s
+    r, mus, nu = rays[0][i:j], rays[3][i:j], rays[4][i:j]
+    d, r_d, _ = _ray_samples(ctx, rays, quad, i, j)
+    out = torch.empty(j - i, d.shape[1], mus.shape[1], dtype=d.dtype, device=d.device)
+    step = max(1, (1 << 22) // out[0].numel())
+    for a in range(0, j - i, step):  # bounded temporaries
+        b = min(a + step, j - i)
+        mus_d = torch.clamp((r[a:b, :, None] * mus[a:b, None, :] + d[a:b, :, None] * nu[a:b, None, :]) / r_d[a:b, :, None], -1.0, 1.0)
+        out[a:b] = grid_coordinate(mu_s_unit(mus_d, ctx.atm.bottom_radius, ctx.atm.top_radius, ctx.mu_s_min) * (MUS - 1), MUS)
+    return out
 
 
 def geometry_bytes(geo: _Geometry) -> int:
@@ -430,18 +481,24 @@ def geometry_bytes(geo: _Geometry) -> int:
 
 
 def _slice_plan(plan, i: int, j: int, per: int):
-    """Rows of a corner plan for groups i:j of ``per`` points each."""
+    """Rows of a :func:`_plan` for groups i:j of ``per`` points each."""
+    g0, g1, f = plan
+    return g0[:, i * per : j * per], g1[:, i * per : j * per], f[i * per : j * per]
+
+
+def _slice_corners(plan, i: int, j: int, per: int):
+    """Rows of a :func:`corner_plan` for groups i:j of ``per`` points each."""
     ix, w, batch = plan
     return ix[i * per : j * per], w[i * per : j * per], (j - i, *batch[1:])
 
 
 def _planned_order_radiance(ctx: _Ctx, tables, order: int, plan, nu: Tensor) -> Tensor:
-    """:func:`_order_radiance` with precomputed corners, (..., W)."""
+    """:func:`_order_radiance` at a precomputed :func:`_plan`, (*nu.shape, W)."""
     atm = ctx.atm
     if order == 1:
-        s_r, s_m = interpolate_planned(list(tables), *plan)
-        return s_r * rayleigh_phase(nu).unsqueeze(-1) + s_m * mie_phase(nu, atm.mie_g, atm.mie_phase).unsqueeze(-1)
-    return interpolate_planned(list(tables), *plan)[0]
+        s_r, s_m = (v.reshape(*nu.shape, -1) for v in _sample_scattering(list(tables), plan))
+        return s_r * rayleigh_phase(nu).unsqueeze(-1) + s_m * atmosphere_mie_phase(nu, atm).unsqueeze(-1)
+    return _sample_scattering(list(tables), plan)[0].reshape(*nu.shape, -1)
 
 
 def _columns_sampled(ctx: _Ctx, r: Tensor, mu: Tensor) -> Tensor:
@@ -554,14 +611,15 @@ def _ground_factor(ctx: _Ctx, geo: _Geometry) -> Tensor:
     return hits.unsqueeze(-1) * torch.exp(-col_g @ extinction_matrix3(atm)) * (atm.ground_albedo / math.pi)
 
 
-def _mie_phase_parts(g: Tensor, name: str):
-    """(f, k) with ``mie_phase(c, g, name) = k f(c)`` (the same arithmetic, k applied after the sum).
+def _mie_phase_parts(atm: Atmosphere):
+    """(f, k) with ``atmosphere_mie_phase(c, atm) = k f(c)`` (the same arithmetic, k applied after the sum).
 
     f evaluates only the branch of the non-cancelling ``1 + g^2 - 2 g c`` that a scalar g selects;
-    a g with dimensions falls back to :func:`mie_phase` itself (k = 1).
+    a g with dimensions, and the two-term phase, fall back to :func:`atmosphere_mie_phase` itself (k = 1).
     """
+    g, name = atm.mie_g, atm.mie_phase
     if g.dim() or name not in ("cornette_shanks", "henyey_greenstein"):
-        return (lambda c: mie_phase(c, g, name)), 1.0
+        return (lambda c: atmosphere_mie_phase(c, atm)), 1.0
     if bool(g >= 0):
         q = lambda c: (1.0 - g) ** 2 + 2.0 * g * (1.0 - c)  # noqa: E731
     else:
@@ -603,14 +661,14 @@ def _scattering_density_table(
 
     def fn(i: int, j: int) -> Tensor:
         L = _planned_order_radiance(ctx, prev_tables, order - 1, _slice_plan(geo.density_plan, i, j, n_d), geo.density_nu[i:j])
-        e_g = interpolate_planned([prev_irradiance], *_slice_plan(geo.ground_plan, i, j, n_d))[0]
+        e_g = interpolate_planned([prev_irradiance], *_slice_corners(geo.ground_plan, i, j, n_d))[0]
         L = L + ground[i:j] * e_g  # (G, D, W)
         v = geo.views[i:j]  # (G, V, 3)
         vx, vy, vz = v.unbind(-1)
         quad_v = torch.stack([torch.ones_like(vx), vx * vx, vy * vy, vz * vz, vx * vy, vx * vz, vy * vz], -1)  # (G, V, 7)
         j_r = (3.0 / (16.0 * math.pi)) * torch.bmm(quad_v, torch.matmul(quad_o, L))  # (G, V, W)
         Ld = L * dom.unsqueeze(-1)
-        phase, k_m = _mie_phase_parts(atm.mie_g, atm.mie_phase)
+        phase, k_m = _mie_phase_parts(atm)
         parts = []
         for a in range(0, j - i, block):
             b = min(a + block, j - i)
@@ -651,45 +709,37 @@ def _multiple_scattering_table(ctx, geo: _Geometry, density: Tensor, t_view: Ten
     from the texel's point to the nearest boundary (2008 eq. 11), T(x, y) (``t_view``, with
     the weights) shared by the MU_S x NU texels of each (r, mu). The 4-D lookup is separable:
     the sample's (r, mu) depend on the view ray only, so Delta J is first interpolated in
-    (r, mu) at the G x S samples for all its MU_S x NU x W values at once (a bilinear
-    ``grid_sample`` with MU_S NU W channels), weighted by T(x, y), then in (mu_s, nu) at the
-    T texels of each sample (a second bilinear ``grid_sample``) and summed over the samples:
-    8 corners per sample and texel instead of 16, and no corner arrays. [W/(m^2 sr nm)]
+    (r, mu) at the G x S samples for all its MU_S x NU x W values at once (4 contiguous rows
+    per sample), weighted by T(x, y), then in (mu_s, nu) at the T texels of each sample (a
+    bilinear ``grid_sample`` at ``geo.sun_grid``) and summed over the samples: 8 corners per
+    sample and texel instead of 16. [W/(m^2 sr nm)]
     """
     atm, sizes = ctx.atm, ctx.sizes
     R, MU, MUS, NU = sizes.scattering_shape
-    dtype, device = atm.dtype, atm.device
     r, mu, g, mus, nu = geo.rays
     n_t = mus.shape[1]
-    x, _ = _trapezoid(quad.multiple_samples, dtype, device)
-    n_s = x.shape[0]
+    n_s = quad.multiple_samples + 1
     n_w = atm.wavelengths.shape[0]
     n_c = MUS * NU * n_w
-    dj = density.reshape(R, MU, n_c).permute(2, 0, 1).unsqueeze(0)  # (1, MUS NU W, R, MU)
+    rows = density.reshape(R * MU, n_c)
     gx_nu = grid_coordinate((nu + 1.0) / 2.0 * (NU - 1), NU)  # (G, T), nu's index as in scattering_index
 
     def fn(i: int, j: int) -> Tensor:
         n_g = j - i
         with torch.no_grad():  # geometry
-            rr, mm, gg = r[i:j], mu[i:j], g[i:j]
-            dist = _distance_to_boundary(rr, mm, gg, atm)
-            d = dist * x  # (G, S)
-            r_d = torch.clamp(torch.sqrt(torch.clamp_min(d * d + 2.0 * rr * mm * d + rr * rr, 0.0)), atm.bottom_radius, atm.top_radius)
-            mu_d = torch.clamp((rr * mm + d) / r_d, -1.0, 1.0)
-            i_r, i_mu, _, _ = scattering_index(r_d, mu_d, mus[i:j, :1], nu[i:j, :1], gg.expand_as(d),
+            _, r_d, mu_d = _ray_samples(ctx, geo.rays, quad, i, j)
+            i_r, i_mu, _, _ = scattering_index(r_d, mu_d, mus[i:j, :1], nu[i:j, :1], g[i:j].expand_as(r_d),
                                                atm.bottom_radius, atm.top_radius, ctx.mu_s_min, sizes)
-            grid_rm = torch.stack([grid_coordinate(i_mu, MU), grid_coordinate(i_r, R)], -1).unsqueeze(0)  # (1, G, S, 2)
-            ss, nn = mus[i:j, None, :], nu[i:j, None, :]  # (G, 1, T)
-            mus_d = torch.clamp((rr[:, :, None] * ss + d[:, :, None] * nn) / r_d[:, :, None], -1.0, 1.0)  # (G, S, T)
-            gy = grid_coordinate(mu_s_unit(mus_d, atm.bottom_radius, atm.top_radius, ctx.mu_s_min) * (MUS - 1), MUS)
+            ix, w, _ = corner_plan((R, MU), (i_r, i_mu))  # (G S, 4)
+            gy = geo.sun_grid[i:j]  # (G, S, T)
             grid_sn = torch.stack([gx_nu[i:j, None, :].expand_as(gy), gy], -1).reshape(n_g * n_s, n_t, 1, 2)
-        a = F.grid_sample(dj, grid_rm, mode="bilinear", padding_mode="border", align_corners=True)  # (1, MUS NU W, G, S)
-        a = a.reshape(MUS, NU, n_w, n_g, n_s).permute(3, 4, 2, 0, 1) * t_view[i:j, :, :, None, None]  # (G, S, W, MUS, NU)
+        a = torch.bmm(w.unsqueeze(1), rows.index_select(0, ix.reshape(-1)).view(n_g * n_s, 4, n_c))  # (G S, 1, MUS NU W)
+        a = a.view(n_g, n_s, MUS, NU, n_w).permute(0, 1, 4, 2, 3) * t_view[i:j, :, :, None, None]  # (G, S, W, MUS, NU)
         b = F.grid_sample(a.reshape(n_g * n_s, n_w, MUS, NU), grid_sn, mode="bilinear", padding_mode="border",
                           align_corners=True)  # (G S, W, T, 1)
         return b.reshape(n_g, n_s, n_w, n_t).sum(1).transpose(1, 2)  # (G, T, W)
 
-    step = _step(chunk_bytes, n_s * (3 * n_c + n_t * (6 + 2 * n_w)), torch.finfo(dtype).bits // 8)
+    step = _step(chunk_bytes, n_s * (7 * n_c + n_t * (4 + 2 * n_w)), torch.finfo(atm.dtype).bits // 8)
     return _chunked(fn, r.shape[0], step, use_ckpt).reshape(R, MU, MUS, NU, n_w)
 
 
@@ -909,7 +959,7 @@ def sky_radiance(
         hits = ray_hits_ground(rr, mm, Rb) & valid[i:j]
         idx = _scat_index(ctx, rr, mm, ss, nn, hits)
         vals = interpolate([tables.single_rayleigh, tables.single_mie] + mult, idx)
-        out = vals[0] * rayleigh_phase(nn).unsqueeze(-1) + vals[1] * mie_phase(nn, atm.mie_g, atm.mie_phase).unsqueeze(-1)
+        out = vals[0] * rayleigh_phase(nn).unsqueeze(-1) + vals[1] * atmosphere_mie_phase(nn, atm).unsqueeze(-1)
         for v in vals[2:]:
             out = out + v
         ext = extinction_matrix3(atm)

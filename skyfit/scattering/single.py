@@ -20,11 +20,12 @@ import torch
 from torch import Tensor
 
 from ..atmosphere import Atmosphere
+from ..atmosphere.profiles import with_mie_profile
 from ..geometry import atmosphere_segment, distance_to_top, point_along_ray, safe_sqrt, sun_cosine_along_ray
 from ..quadrature import nodes_weights, validate_rule
-from ..transmittance import ColumnFn, OpticalDepthIntegrator, ozone_column
+from ..transmittance import ColumnFn, OpticalDepthIntegrator, ozone_column, prepare_columns
 from ..transmittance.quadrature import QuadratureOpticalDepth
-from .phase import mie_phase, rayleigh_phase
+from .phase import atmosphere_mie_phase, rayleigh_phase
 
 CHUNK_BYTES_CPU: float = 64e6
 """Default working memory per chunk of rays on the CPU [bytes]: large enough that the
@@ -173,11 +174,11 @@ def _render_chunk(atm, column_fn, r, mu, mu_s, nu, x, w, ground, sun_disk):
     ext = path_extinction(atm)  # (K [+ 1], W); the ozone column is the last of col's (n, N, K [+ 1])
     trans = torch.matmul(col, -ext).exp_()  # (n, N, W)
     vis = sun_visible_fraction(r_j, mus_j, Rb, atm.sun_angular_radius)  # (n, N)
-    dens = torch.exp((r_j - Rb).unsqueeze(-1) * -(1.0 / atm.scale_heights))  # (n, N, 2)
+    dens = with_mie_profile(torch.exp((r_j - Rb).unsqueeze(-1) * -(1.0 / atm.scale_heights)), r_j - Rb, atm)  # (n, N, 2)
     wd = dens * (vis * (w * seg.unsqueeze(-1))).unsqueeze(-1)  # quadrature weight x density x sun fraction
     ray_int = torch.bmm(wd.transpose(1, 2), trans)  # (n, 2, W)
     p_r = rayleigh_phase(nu).unsqueeze(-1)
-    p_m = mie_phase(nu, atm.mie_g, atm.mie_phase).unsqueeze(-1)
+    p_m = atmosphere_mie_phase(nu, atm).unsqueeze(-1)
     radiance = ray_int[:, 0] * atm.rayleigh_scattering * p_r + ray_int[:, 1] * atm.mie_scattering * p_m
     radiance = radiance * atm.solar_irradiance
     if ground:
@@ -240,7 +241,7 @@ def single_scattering(
     r, mu, mu_s, nu = (t.reshape(-1) for t in (r, mu, mu_s, nu))
     x, w = nodes_weights(rule, view_samples, dtype, device)
     if column_fn is None:
-        column_fn = integrator.prepare(atm.scale_heights, atm.bottom_radius, atm.top_radius)
+        column_fn = prepare_columns(integrator, atm)
     n_w = atm.wavelengths.shape[0]
     # Working set per sample point: ~6 (W,)-vectors and ~24 scalars, plus a quadrature
     # integrator's (M, K) density grids for its M inner samples.

@@ -17,5 +17,8 @@ stability                 the extreme-grid stability check: NaN/Inf and error co
 integrator_calibration    ``skyfit calibrate-integrator``: Taylor (a, b) per atmosphere and layer,
                           spline grid and view samples (docs/integrator_calibration.md)
 demo                      ``skyfit demo``: render, noise, fit, uncertainty, LUTs, truth vs recovered
+photo_synth               realistic synthetic all-sky photos and brackets with known truth (multiple
+                          scattering, camera sensitivities, Bayer, flare, skyline, JPEG/EXIF);
+                          ``scripts/photo_synth.py``
 ========================  =====================================================================
 """

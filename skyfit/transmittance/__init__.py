@@ -16,6 +16,13 @@ chapman         closed-form Chapman grazing-incidence approx.    chapman
 
 Not an integrator but used with every one: :func:`ozone_column` (module ``ozone``), the
 exact column of the ozone tent layer along a segment.
+
+Boundary-layer aerosol (``mie.profile: boundary_layer``, docs/aerosol.md): every integrator
+takes it through :meth:`OpticalDepthIntegrator.prepare_layers` (:func:`prepare_columns` of an
+atmosphere). The quadrature family samples the profile directly; the closed forms (taylor,
+spline, chapman), the LUT and height fog are split exactly at the layer top
+(:mod:`.boundary_layer`): the constant part is a length, the part above their own
+exponential column times exp(h_mix / H).
 """
 from __future__ import annotations
 
@@ -23,6 +30,7 @@ import importlib
 import inspect
 import math
 
+from ..atmosphere import Atmosphere
 from .base import ColumnFn, OpticalDepthIntegrator
 from .ozone import ozone_column
 
@@ -117,6 +125,13 @@ def integrator_from_spec(spec: str | dict) -> OpticalDepthIntegrator:
     return make_integrator(name, **{k: v for k, v in d.items() if k in accepted})
 
 
+def prepare_columns(integrator: OpticalDepthIntegrator, atm: Atmosphere) -> ColumnFn:
+    """The (Rayleigh, Mie) column function of ``atm`` with ``integrator``: its
+    :meth:`~OpticalDepthIntegrator.prepare_layers` with the atmosphere's scale heights and, for a
+    boundary-layer aerosol, its mixing height; ``(r, mu, length) -> (..., 2)``. [m]"""
+    return integrator.prepare_layers(atm.scale_heights, atm.bottom_radius, atm.top_radius, atm.mixing_heights)
+
+
 __all__ = [
     "INTEGRATORS",
     "ColumnFn",
@@ -126,4 +141,5 @@ __all__ = [
     "make_integrator",
     "ozone_column",
     "parse_integrator",
+    "prepare_columns",
 ]

@@ -12,9 +12,11 @@ so every coefficient beta enters linearly and its gradient is exact.
 from __future__ import annotations
 
 import abc
-from typing import Callable, ClassVar
+from typing import Callable, ClassVar, Mapping
 
 from torch import Tensor
+
+from .boundary_layer import boundary_layer_columns
 
 ColumnFn = Callable[[Tensor, Tensor, Tensor], Tensor]
 
@@ -50,6 +52,26 @@ class OpticalDepthIntegrator(abc.ABC):
             return self.column(r, mu, length, scale_heights, bottom_radius, top_radius)
 
         return fn
+
+    def prepare_layers(self, scale_heights: Tensor, bottom_radius: float, top_radius: float,
+                       mixing_heights: Mapping[int, Tensor] | None = None) -> ColumnFn:
+        """:meth:`prepare` for layers that may have a boundary-layer profile (docs/aerosol.md).
+
+        Args:
+            scale_heights: shape (K,). [m]
+            bottom_radius, top_radius: [m]
+            mixing_heights: layer index -> mixing height h_mix, shape (), for the layers whose density is
+                1 up to h_mix and exp(-(h - h_mix) / H) above; None or empty: all exponential. [m]
+
+        Returns:
+            ``(r, mu, length) -> (..., K)``: this integrator's exponential columns split exactly at the
+            layer top (:mod:`skyfit.transmittance.boundary_layer`); :meth:`prepare` itself when every
+            layer is exponential. The quadrature family overrides it to integrate the profile directly.
+        """
+        fn = self.prepare(scale_heights, bottom_radius, top_radius)
+        if not mixing_heights:
+            return fn
+        return boundary_layer_columns(fn, scale_heights, mixing_heights, bottom_radius)
 
     def settings(self) -> dict:
         """Name and hyperparameters, for result JSON and EXR headers."""

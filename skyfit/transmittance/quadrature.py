@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..atmosphere.profiles import boundary_layer_density
 from ..geometry import safe_sqrt
 from ..quadrature import nodes_weights, validate_rule
 from .base import OpticalDepthIntegrator
@@ -30,6 +31,30 @@ class QuadratureOpticalDepth(OpticalDepthIntegrator):
         alt = safe_sqrt(r_ * r_ + 2.0 * r_ * mu_ * s + s * s) - bottom_radius
         dens = torch.exp(-alt.unsqueeze(-1) / scale_heights)  # (..., M, K)
         return torch.einsum("...mk,m->...k", dens, w) * L_
+
+    def prepare_layers(self, scale_heights, bottom_radius, top_radius, mixing_heights=None):
+        """Columns of exponential and boundary-layer profiles alike: the rule samples the density itself
+        (:func:`skyfit.atmosphere.profiles.boundary_layer_density` for the layers in ``mixing_heights``).
+
+        The boundary-layer density has a kink at h_mix, so the rule converges there at its low-order
+        rate (docs/aerosol.md); :meth:`prepare` when every layer is exponential.
+        """
+        if not mixing_heights:
+            return self.prepare(scale_heights, bottom_radius, top_radius)
+        layers = dict(mixing_heights)
+
+        def fn(r: Tensor, mu: Tensor, length: Tensor) -> Tensor:
+            x, w = nodes_weights(self.name, self.samples, r.dtype, r.device)
+            r_, mu_, L_ = (t.unsqueeze(-1) for t in torch.broadcast_tensors(r, mu, length))
+            s = L_ * x
+            alt = safe_sqrt(r_ * r_ + 2.0 * r_ * mu_ * s + s * s) - bottom_radius  # (..., M)
+            dens = torch.exp(-alt.unsqueeze(-1) / scale_heights)  # (..., M, K)
+            rows = list(dens.unbind(-1))
+            for k, h in layers.items():
+                rows[k] = boundary_layer_density(alt, h, scale_heights[k])
+            return torch.einsum("...mk,m->...k", torch.stack(rows, -1), w) * L_
+
+        return fn
 
     def settings(self) -> dict:
         return {"name": self.name, "samples": self.samples}

@@ -1,0 +1,415 @@
+"""The photo path through the command line, end to end: ``skyfit fit PHOTO``, ``evaluate RESULT PHOTO``,
+``calibrate-camera``, and every bad input ending in one line, exit status 2 and no output (CONTRACT.md,
+"Photos" and "Errors").
+
+The photos are made here: a small off-centre fisheye (:data:`CAM`) sees the ``earth`` sky rendered by
+``skyfit.render`` with the sun where NREL SPA puts it for :data:`T1` / :data:`T2` at :data:`LOC`, plus a
+saturating sun (30 x the sky's 99th percentile, exp(-angle / 1.5 deg)), black outside the lens circle, written
+as 8-bit sRGB JPEG/PNG, 16-bit sRGB TIFF, linear Radiance .hdr, linear EXR without metadata and a bracket of
+three JPEGs with EXIF exposure times. The expected camera is :data:`CAM` (the truth the photos were made from).
+
+Cost: the fits run with a config whose ``fit:`` section makes them cheap (orders 1, 3 wavelengths, 4 view
+samples, 5 L-BFGS iterations) and about 600 blocks per photo (``TARGET_SAMPLES``, a cost knob only); the
+numbers checked are those such a fit gets right (camera geometry from the image and the sun, the files and
+keys written), not the aerosol.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+import torch
+from _cli import run
+from PIL import ExifTags, Image, TiffImagePlugin
+
+import skyfit
+import skyfit.fit.photo as fit_photo_module
+from skyfit.camera import FisheyeCamera, parse_time, sun_position
+from skyfit.fit.photo import camera_from_dict, read_camera
+from skyfit.fit.photo_calibration import (
+    camera_from_calibration,
+    choose_projection,
+    circular_median_deg,
+    combine_cameras,
+)
+from skyfit.geometry import zenith_azimuth_to_enu
+from skyfit.io import write_exr, write_hdr
+
+T1 = "2024-06-01T10:00:00+02:00"
+T2 = "2024-06-01T15:30:00+02:00"
+T3 = "2024-06-01T12:30:00+02:00"
+NIGHT = "2024-06-01T23:30:00+02:00"
+LOC = "48.1,11.6"
+SHAPE = (96, 112)
+CAM = dict(projection="equidistant", cx=58.3, cy=46.7, radius=40.0, up_azimuth_deg=30.0)
+
+
+def _srgb_encode(x: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 encoding in numpy (independent of skyfit.camera.srgb)."""
+    x = np.clip(np.asarray(x, np.float64), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.maximum(x, 0.0031308) ** (1 / 2.4) - 0.055)
+
+
+def linear_sky(time: str, shape=SHAPE, cam_kw=CAM) -> np.ndarray:
+    """Linear RGB (H, W, 3) of the photo at ``time``: sky scaled to 0.8 at its 99th percentile, a sun of peak 30."""
+    cam = FisheyeCamera(shape, **cam_kw)
+    lat, lon = (float(v) for v in LOC.split(","))
+    sp = sun_position(parse_time(time), lat, lon, 0.0)
+    sz, sa = float(sp.zenith), float(sp.azimuth)
+    sky = skyfit.render(skyfit.load_atmosphere("earth", "450,550,650"), cam, sun=(sz, sa), accuracy="de=1")
+    valid = sky.valid.numpy()
+    rgb = np.nan_to_num(sky.rgb.numpy())
+    rgb = rgb / np.percentile(rgb[valid], 99) * 0.8
+    vec, _ = cam.pixel_vectors(torch.float64)
+    s = zenith_azimuth_to_enu(torch.tensor(math.radians(sz), dtype=torch.float64),
+                              torch.tensor(math.radians(sa), dtype=torch.float64)).numpy()
+    gam = np.degrees(np.arccos(np.clip(np.nan_to_num(vec.numpy()) @ s, -1, 1)))
+    rgb = rgb + (30.0 * np.exp(-gam / 1.5))[..., None]
+    return np.where(valid[..., None], rgb, 0.0)
+
+
+def codes8(lin: np.ndarray) -> np.ndarray:
+    return np.round(255 * _srgb_encode(lin)).astype(np.uint8)
+
+
+def exif_for(t: float) -> Image.Exif:
+    """EXIF with ExposureTime (33434), FNumber (33437) and ISO (34855) in the Exif sub-IFD."""
+    ex = Image.Exif()
+    sub = ex.get_ifd(ExifTags.IFD.Exif)
+    sub[33434] = TiffImagePlugin.IFDRational(1, round(1 / t))
+    sub[33437] = TiffImagePlugin.IFDRational(40, 10)
+    sub[34855] = 100
+    return ex
+
+
+def listing(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+
+
+@pytest.fixture(autouse=True)
+def few_blocks(monkeypatch):
+    """About 600 blocks per photo instead of 2500: a cost knob for these plumbing tests."""
+    monkeypatch.setattr(fit_photo_module, "TARGET_SAMPLES", 600)
+
+
+@pytest.fixture(scope="module")
+def photos(tmp_path_factory):
+    """Every input format of one sky (T1), another sky of the same camera (T2, T3), a cheap config, bad inputs."""
+    d = tmp_path_factory.mktemp("photos")
+    lin1, lin2, lin3 = linear_sky(T1), linear_sky(T2), linear_sky(T3)
+    Image.fromarray(codes8(lin1)).save(d / "sky.jpg", quality=95)
+    Image.fromarray(codes8(lin1)).save(d / "sky.png")
+    Image.fromarray(codes8(lin2)).save(d / "other.jpg", quality=95)
+    Image.fromarray(codes8(lin3)).save(d / "third.jpg", quality=95)
+    tifffile.imwrite(d / "sky16.tif", np.round(65535 * _srgb_encode(lin1)).astype(np.uint16), photometric="rgb")
+    write_hdr(d / "sky.hdr", lin1)
+    write_exr(d / "sky.exr", {"R": lin1[..., 0], "G": lin1[..., 1], "B": lin1[..., 2]})
+    (d / "bracket").mkdir()
+    for k, t in enumerate((1 / 400, 1 / 100, 1 / 25)):
+        Image.fromarray(codes8(lin1 * t * 100)).save(d / "bracket" / f"f{k}.jpg", quality=95, exif=exif_for(t))
+    # bad inputs
+    (d / "garbage.jpg").write_bytes(np.random.default_rng(0).bytes(2048))
+    yy, xx = np.mgrid[0:SHAPE[0], 0:SHAPE[1]] / np.array(SHAPE)[:, None, None]
+    full = np.stack([0.15 + 0.1 * yy, 0.25 + 0.1 * xx, 0.6 + 0.0 * xx], -1)  # sky to the image's edges: no lens circle
+    Image.fromarray(codes8(full)).save(d / "fullframe.jpg", quality=95)
+    (d / "sizes").mkdir()
+    Image.fromarray(codes8(lin1 * 0.25)).save(d / "sizes" / "a.jpg", exif=exif_for(1 / 400))
+    Image.fromarray(codes8(lin1[:80])).save(d / "sizes" / "b.jpg", exif=exif_for(1 / 100))
+    (d / "scenes").mkdir()
+    perm = np.random.default_rng(3).permutation(SHAPE[0] * SHAPE[1])
+    shuffled = lin1.reshape(-1, 3)[perm].reshape(lin1.shape)
+    Image.fromarray(codes8(lin1 * 0.25)).save(d / "scenes" / "a.jpg", quality=95, exif=exif_for(1 / 400))
+    Image.fromarray(codes8(shuffled)).save(d / "scenes" / "b.jpg", quality=95, exif=exif_for(1 / 100))
+    (d / "gap").mkdir()  # 12 EV apart, no EXIF: no pixel is well exposed in both
+    Image.fromarray(codes8(lin1 * 2.0**-8)).save(d / "gap" / "a.png")
+    Image.fromarray(codes8(lin1 * 2.0**4)).save(d / "gap" / "b.png")
+    Image.fromarray(np.full(SHAPE, 255, np.uint8)).save(d / "mask_all.png")
+    Image.fromarray(np.zeros((50, 60), np.uint8)).save(d / "mask_small.png")
+    (d / "camera_unknown.yaml").write_text("projection: equidistant\ncx: 58.3\ncy: 46.7\nradius_px: 40.0\nlens_brand: acme\n")
+    text = (Path(skyfit.__file__).parent / "configs" / "earth.yaml").read_text()
+    (d / "cheap.yaml").write_text(text + "\nfit:\n  orders: 1\n  max_iter: 5\n  adam_steps: 3\n  starts: 1\n"
+                                  "  view_samples: 4\n  integrator: gauss:samples=4\n  rule: trapezoid\n"
+                                  "  wavelengths: 450,550,650\n")
+    return d
+
+
+def _fit_argv(photo, out, cfg, time=T1, *extra):
+    return ["fit", photo, "--time", time, "--location", LOC, "--out", out, "--config", cfg, "--no-progress", *extra]
+
+
+# -- skyfit fit PHOTO on every format, then evaluate ------------------------------------------------
+def check_photo_result(out: Path, name: str) -> dict:
+    """RESULT.json and RESULT.png of a photo fit in ``out`` (and nothing else): the keys of CONTRACT.md, the camera."""
+    assert listing(out) == ["r.json", "r.png"]
+    r = json.loads((out / "r.json").read_text())
+    cam, sun = r["camera"], r["sun"]
+    for k in ("projection", "cx", "cy", "radius_px", "up_azimuth_deg", "tilt_deg"):
+        assert k in cam, k
+    # the geometry comes from the image and the sun: the truth within a pixel / a few degrees
+    assert cam["projection"] == "equidistant"
+    assert abs(cam["cx"] - CAM["cx"]) < 1.0 and abs(cam["cy"] - CAM["cy"]) < 1.0
+    assert abs(cam["radius_px"] - CAM["radius"]) < 1.5
+    assert abs((cam["up_azimuth_deg"] - CAM["up_azimuth_deg"] + 180) % 360 - 180) < 8.0  # 5 iterations: loose
+    assert len(sun["model_px"]) == 2 and sun["detected_px"] is not None and len(sun["detected_px"]) == 2
+    assert 0 <= sun["separation_deg"] < 8.0  # 5 L-BFGS iterations leave the tilt loose
+    assert {"aod_550", "angstrom_alpha", "g"} <= set(r["aerosol"])
+    assert r["metrics"]["rmse_rel"] is not None and 0 <= r["metrics"]["rmse_rel"] < 0.5
+    px = r["pixels"]
+    assert px["used"] > 0 and px["masked"] > 0 and px["censored"] >= 0
+    assert r["plots"] == [str(out / "r.png")]
+    if name == "bracket":
+        assert r["photo"]["format"] == "bracket" and len(r["photo"]["frames"]) == 3
+        assert {f["exposure_source"] for f in r["photo"]["frames"]} == {"exif"}
+    if name in ("sky.hdr", "sky.exr"):
+        assert r["photo"]["response"] == "linear"
+    return r
+
+
+@pytest.fixture(scope="module")
+def fitted(photos, tmp_path_factory):
+    """The JPEG's fit (sky.jpg at T1) through the CLI, in-process: ``out/r.json`` and ``out/r.png``."""
+    from skyfit.cli import main
+
+    fit_photo_module.TARGET_SAMPLES, old = 600, fit_photo_module.TARGET_SAMPLES
+    try:
+        d = tmp_path_factory.mktemp("fitted") / "out"
+        d.mkdir()
+        assert main([str(a) for a in _fit_argv(photos / "sky.jpg", d / "r.json", photos / "cheap.yaml", T1)]) == 0
+    finally:
+        fit_photo_module.TARGET_SAMPLES = old
+    return d / "r.json"
+
+
+def test_fit_photo_jpeg(fitted):
+    check_photo_result(fitted.parent, "sky.jpg")
+
+
+@pytest.mark.parametrize("name", ["sky.png", "sky16.tif", "sky.hdr", "sky.exr", "bracket"])
+def test_fit_photo_of_every_format_writes_result_and_png(photos, tmp_path, capsys, name):
+    out = tmp_path / "out"
+    out.mkdir()
+    rc, so, se = run(_fit_argv(photos / name, out / "r.json", photos / "cheap.yaml", T1, "--json"), capsys)
+    assert rc == 0, se
+    assert json.loads(so)["out"] == str(out / "r.json")
+    check_photo_result(out, name)
+
+
+def test_evaluate_another_photo_of_the_same_camera(photos, fitted, capsys):
+    rc, so, se = run(["evaluate", fitted, photos / "other.jpg", "--time", T2, "--location", LOC, "--json", "--no-progress"], capsys)
+    assert rc == 0, se
+    ev = json.loads(so)
+    assert ev["rmse_rel"] is not None and 0 <= ev["rmse_rel"] < 0.5
+    assert ev["refitted"] == ["exposure"] and ev["pixels"]["used"] > 0
+    assert ev["sun"]["separation_deg"] < 8.0  # the fitted camera (heading, tilt) carries over to another hour
+
+
+# -- bad input: one line naming the file and the problem, exit 2, nothing written -------------------
+def _refused(argv, capsys, folder: Path, *needles: str) -> str:
+    before = listing(folder)
+    rc, so, se = run(argv, capsys)
+    lines = se.strip().splitlines()
+    assert rc == 2, se
+    assert len(lines) == 1 and "Traceback" not in se, se
+    assert lines[0].startswith("skyfit: error: ") or lines[0].startswith("skyfit fit: error: "), lines[0]
+    for n in needles:
+        assert n in lines[0], (n, lines[0])
+    assert listing(folder) == before, f"new files: {sorted(set(listing(folder)) - set(before))}"
+    return lines[0]
+
+
+BAD_FITS = {
+    # case: (photo, time, extra flags, words the one line must hold)
+    "unreadable image": ("garbage.jpg", T1, [], ["garbage.jpg", "cannot read the image"]),
+    "no lens circle": ("fullframe.jpg", T1, [], ["fullframe.jpg", "no fisheye circle found"]),
+    "time without UTC offset": ("sky.jpg", "2024-06-01T10:00:00", [], ["--time", "2024-06-01T10:00:00", "offset"]),
+    "sun below the horizon": ("sky.jpg", NIGHT, [], ["sky.jpg", "sun is below the horizon"]),
+    "bracket of different sizes": ("sizes", T1, [], ["sizes", "differ in size"]),
+    "bracket of different scenes": ("scenes", T1, [], ["scenes", "not one scene"]),
+    "bracket without overlap or EXIF": ("gap", T1, [], ["gap", "share no well-exposed pixels"]),
+    "all pixels masked": ("sky.jpg", T1, ["--mask", "{d}/mask_all.png"], ["sky.jpg", "no sky pixel left"]),
+    "mask of the wrong size": ("sky.jpg", T1, ["--mask", "{d}/mask_small.png"], ["mask_small.png", "50x60"]),
+    "camera file with an unknown key": ("sky.jpg", T1, ["--camera", "{d}/camera_unknown.yaml"],
+                                        ["camera_unknown.yaml", "unknown key", "lens_brand"]),
+    "exposures of the wrong count": ("bracket", T1, ["--exposures", "0.01,0.02"], ["bracket", "2 exposure(s) given for 3 frame"]),
+    "missing photo": ("nothere.jpg", T1, [], ["nothere.jpg", "no such file"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_FITS))
+def test_bad_photo_input_is_one_line_exit_2_and_no_output(photos, tmp_path, capsys, case):
+    name, time, extra, needles = BAD_FITS[case]
+    out = tmp_path / "out"
+    out.mkdir()
+    extra = [a.format(d=photos) for a in extra]
+    _refused(_fit_argv(photos / name, out / "r.json", photos / "cheap.yaml", time, *extra), capsys, out, *needles)
+    assert listing(out) == []
+
+
+@pytest.mark.parametrize("case", ["unreadable image", "sun below the horizon", "missing photo"])
+def test_bad_photo_to_evaluate_is_one_line(photos, fitted, tmp_path, capsys, case):
+    name, time, _, needles = BAD_FITS[case]
+    _refused(["evaluate", fitted, photos / name, "--time", time, "--location", LOC, "--json"], capsys, tmp_path, *needles)
+
+
+def test_photo_flags_need_time_and_location(photos, tmp_path, capsys):
+    _refused(["fit", photos / "sky.jpg", "--location", LOC, "--out", tmp_path / "r.json"], capsys, tmp_path,
+             "sky.jpg", "--time")
+    _refused(["evaluate", tmp_path / "r.json", photos / "sky.jpg", "--time", T1], capsys, tmp_path, "sky.jpg", "--location")
+
+
+# -- failures and Ctrl-C during a fit leave nothing ----------------------------------------------------
+def test_a_fit_that_fails_or_is_interrupted_leaves_no_result(photos, tmp_path, capsys, monkeypatch):
+    import types
+
+    import skyfit.fit.results as results
+
+    out = tmp_path / "out"
+    out.mkdir()
+    argv = _fit_argv(photos / "sky.jpg", out / "r.json", photos / "cheap.yaml", T1)
+
+    def boom(*a, **k):
+        raise ValueError("fit diverged (test)")
+
+    with monkeypatch.context() as m:
+        m.setattr(fit_photo_module, "optimise", boom)  # the fit itself fails: one line, exit 2
+        _refused(argv, capsys, out, "fit diverged (test)")
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    # Ctrl-C after RESULT.png is written, before RESULT.json (the fit stubbed: only the writing order matters)
+    monkeypatch.setattr(fit_photo_module, "fit_photo", lambda *a, **k: types.SimpleNamespace(result={}))
+    monkeypatch.setattr(fit_photo_module, "report_png", lambda pf, path: Path(path).write_bytes(b"\x89PNG"))
+    monkeypatch.setattr(results, "save_result", interrupted)
+    rc, so, se = run(argv, capsys)
+    assert rc == 130 and "interrupted" in se
+    assert listing(out) == [], "an interrupted photo fit left a partial output"
+    monkeypatch.setattr(results, "save_result", boom)  # writing RESULT.json fails: no RESULT.png either
+    _refused(argv, capsys, out, "fit diverged (test)")
+    assert listing(out) == []
+
+
+# -- calibrate-camera ----------------------------------------------------------------------------------
+def test_circular_median_against_brute_force():
+    rng = np.random.default_rng(0)
+    grid = np.arange(0.0, 360.0, 0.01)
+    for n in (1, 2, 3, 4, 5, 7):
+        a = (rng.normal(350.0, 15.0, n)) % 360.0  # straddles North
+        cost = np.abs((a[None, :] - grid[:, None] + 180.0) % 360.0 - 180.0).sum(1)
+        m = circular_median_deg(a)
+        got = np.abs((a - m + 180.0) % 360.0 - 180.0).sum()
+        assert got <= cost.min() + 1e-6, (n, a, m)
+    assert circular_median_deg([350.0, 10.0, 20.0]) == pytest.approx(10.0)
+    assert circular_median_deg([359.0, 1.0]) in (pytest.approx(0.0, abs=1e-9), pytest.approx(360.0))
+    with pytest.raises(ValueError, match="finite"):
+        circular_median_deg([float("nan")])
+
+
+def test_projection_by_vote_then_summed_evidence():
+    e = lambda p, ev: {"projection": p, "projection_evidence": ev}  # noqa: E731
+    assert choose_projection([e("equisolid", {}), e("equisolid", {}), e("equidistant", {})])[0] == "equisolid"
+    tie = [e("equisolid", {"equisolid": 0.5, "equidistant": 0.1}), e("equidistant", {"equisolid": 0.4, "equidistant": 0.2})]
+    best, why = choose_projection(tie)
+    assert best == "equidistant" and "tie" in why
+
+
+def _entry(path, projection="equidistant", cx=58.0, cy=47.0, r=40.0, up=30.0, tilt=(0.0, 0.0), vig=-0.1, shape=SHAPE):
+    return {"path": path, "time": T1, "projection": projection, "cx": cx, "cy": cy, "radius_px": r, "up_azimuth_deg": up,
+            "tilt_deg": list(tilt), "max_zenith_deg": 90.0, "vignetting": vig, "gain_red": 1.0, "gain_blue": None,
+            "projection_evidence": {}, "shape": list(shape)}
+
+
+def test_combine_cameras_medians_and_their_spread():
+    entries = [_entry("a", cx=58.0, up=355.0, tilt=(1.0, 0.0), vig=-0.1), _entry("b", cx=59.0, up=5.0, tilt=(0.0, 2.0), vig=-0.3),
+               _entry("c", cx=61.0, up=15.0, tilt=(2.0, 1.0), vig=-0.2),
+               _entry("d", projection="equisolid", cx=57.5, up=200.0, tilt=(9.0, 9.0), vig=0.5)]
+    cam, spread = combine_cameras(entries)
+    assert cam["projection"] == "equidistant" and cam["size"] == list(SHAPE)
+    assert cam["cx"] == pytest.approx(58.5)  # all four photos: the circle does not depend on the projection
+    assert cam["up_azimuth_deg"] == pytest.approx(5.0)  # circular median of 355, 5, 15 (the equisolid photo left out)
+    assert cam["tilt_deg"] == pytest.approx([1.0, 1.0]) and cam["vignetting"] == pytest.approx(-0.2)
+    assert "gain_blue" not in cam and cam["gain_red"] == 1.0
+    assert spread["cx"]["max_abs_dev"] == pytest.approx(2.5) and spread["up_azimuth_deg"]["max_abs_dev"] == pytest.approx(10.0)
+    assert "3 of 4" in spread["projection"]
+    with pytest.raises(ValueError, match=r"calibrate-camera: the photos differ in size \(a 112x96, b 100x90\)"):
+        combine_cameras([_entry("a"), _entry("b", shape=(90, 100))])
+
+
+def test_calibrate_camera_cli_round_trip_then_fit_with_the_camera(photos, fitted, tmp_path, capsys):
+    """CAMERA.yaml of two photos: each photo's entry is its fitted camera (the RESULT.json of the same fit of sky.jpg,
+    ``fitted``), the combined camera is their median, the file read back by read_camera + camera_from_dict is the
+    combined camera; a third photo fitted with it finds the sun where SPA puts it."""
+    out = tmp_path / "out"
+    out.mkdir()
+    rc, so, se = run(["calibrate-camera", photos / "sky.jpg", photos / "other.jpg", "--time", T1, "--time", T2,
+                      "--location", LOC, "--out", out / "camera.yaml", "--config", photos / "cheap.yaml", "--json"], capsys)
+    assert rc == 0, se
+    assert listing(out) == ["camera.yaml"]
+    summary = json.loads(so)
+    meta = read_camera(out / "camera.yaml")
+    assert summary["photos"] == 2 and [p["time"] for p in meta["photos"]] == [T1, T2]
+    assert meta["source"].startswith("skyfit calibrate-camera") and (out / "camera.yaml").read_text().startswith("# CAMERA.yaml")
+    keys = ("projection", "size", "cx", "cy", "radius_px", "up_azimuth_deg", "tilt_deg", "max_zenith_deg")
+    x, y = torch.meshgrid(torch.arange(20.0, 100.0, 7.0, dtype=torch.float64),
+                          torch.arange(10.0, 90.0, 7.0, dtype=torch.float64), indexing="xy")
+
+    def directions(meta_dict):
+        m = {k: v for k, v in meta_dict.items() if k in keys}
+        m.setdefault("size", list(SHAPE))
+        return FisheyeCamera.from_metadata(m).pixel_to_direction(x, y)
+
+    # the first photo's entry is the camera of sky.jpg's own fit
+    r = json.loads(fitted.read_text())
+    a, b = directions(meta["photos"][0]), directions(r["camera"])
+    ok = torch.isfinite(a).all(-1)
+    assert int(ok.sum()) > 50 and torch.equal(ok, torch.isfinite(b).all(-1))
+    torch.testing.assert_close(a[ok], b[ok], rtol=0, atol=1e-9)
+    for k in ("vignetting", "gain_red", "gain_blue"):
+        assert meta["photos"][0][k] == pytest.approx(r["camera"][k], rel=1e-9)
+    # the combined camera: medians of the entries (an independent reduction of what the file lists)
+    e = meta["photos"]
+    for k in ("cx", "cy", "radius_px", "vignetting"):
+        assert meta[k] == pytest.approx(float(np.mean([p[k] for p in e])), abs=1e-12)  # the median of two
+    d = ((e[1]["up_azimuth_deg"] - e[0]["up_azimuth_deg"] + 180.0) % 360.0) - 180.0
+    assert meta["up_azimuth_deg"] == pytest.approx((e[0]["up_azimuth_deg"] + d / 2.0) % 360.0, abs=1e-9)
+    assert meta["projection"] == "equidistant" and abs(meta["cx"] - CAM["cx"]) < 1.0 and abs(meta["cy"] - CAM["cy"]) < 1.0
+    assert abs((meta["up_azimuth_deg"] - CAM["up_azimuth_deg"] + 180) % 360 - 180) < 8.0
+    # the file read back is the combined camera
+    back = camera_from_dict(meta, SHAPE).pixel_to_direction(x, y)
+    torch.testing.assert_close(back[ok], directions(meta)[ok], rtol=0, atol=1e-12)
+    torch.testing.assert_close(camera_from_calibration(meta).pixel_to_direction(x, y)[ok], back[ok], rtol=0, atol=1e-12)
+    # a third photo, another hour, fitted with the calibrated camera
+    rc, so, se = run(_fit_argv(photos / "third.jpg", out / "r.json", photos / "cheap.yaml", T3, "--camera",
+                               out / "camera.yaml", "--json", "--no-plots"), capsys)
+    assert rc == 0, se
+    r3 = json.loads((out / "r.json").read_text())
+    assert r3["camera"]["source"] == "given" and r3["sun"]["separation_deg"] < 8.0
+    assert r3["camera"]["cx"] == pytest.approx(meta["cx"]) and r3["camera"]["vignetting"] == pytest.approx(meta["vignetting"])
+
+
+CAL_BAD = {
+    # case: (photos, times, extra, needles)
+    "a time per photo": (["sky.jpg", "other.jpg"], [T1], [], ["--time", "2 photo(s), 1 --time"]),
+    "no time at all": (["sky.jpg"], [], [], ["--time", "1 photo(s), 0 --time"]),
+    "time without offset": (["sky.jpg"], ["2024-06-01T10:00:00"], [], ["--time", "2024-06-01T10:00:00"]),
+    "not a yaml output": (["sky.jpg"], [T1], ["--out-name", "camera.txt"], ["--out", "camera.txt"]),
+    "unreadable photo": (["garbage.jpg"], [T1], [], ["garbage.jpg", "cannot read the image"]),
+    "no lens circle": (["fullframe.jpg"], [T1], [], ["fullframe.jpg", "no fisheye circle found"]),
+    "sun below the horizon": (["sky.jpg"], [NIGHT], [], ["sky.jpg", "below the horizon"]),
+    "photos of different sizes": (["sky.jpg", "sizes/b.jpg"], [T1, T1], [], ["differ in size", "b.jpg"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CAL_BAD))
+def test_calibrate_camera_bad_input_is_one_line(photos, tmp_path, capsys, case):
+    names, times, extra, needles = CAL_BAD[case]
+    name = extra[1] if extra[:1] == ["--out-name"] else "camera.yaml"
+    argv = ["calibrate-camera", *[photos / n for n in names]]
+    for t in times:
+        argv += ["--time", t]
+    argv += ["--location", LOC, "--out", tmp_path / name, "--config", photos / "cheap.yaml"]
+    _refused(argv, capsys, tmp_path, *needles)
