@@ -139,8 +139,11 @@ def test_bracket_frames_agree_once_linearised_and_divided_by_their_exposures(bra
     assert all(b > a for a, b in zip(rel, rel[1:]))
     steps = np.log2(np.array(rel[1:]) / np.array(rel[:-1]))
     assert ((steps > 0.9) & (steps < 2.1)).all()  # 1-2 EV, jittered by a few per cent
-    # the sun saturates in every frame but the shortest
-    assert not frames[0]["sun_saturated"] and all(f["sun_saturated"] for f in frames[1:])
+    # the sun saturates in all but the shortest frame(s): never in the first, always in the last, and
+    # once saturated in every longer frame
+    sat = [f["sun_saturated"] for f in frames]
+    assert not sat[0] and sat[-1] and sat == sorted(sat)
+    assert truth["bracket"]["sun_unsaturated_frames"] == [i for i, v in enumerate(sat) if not v]
     img0 = _read(folder / frames[0]["file"])
     cam = FisheyeCamera.from_metadata(truth["camera"])
     sx, sy = truth["sun"]["model_px"]
@@ -258,3 +261,19 @@ def test_skyline_shapes_and_sun_gap():
     assert sl["elevation_deg"][near].max() <= 5.0 + 1e-12
     assert 0.2 < sl["fraction"] < 0.5
     assert set(s["kind"] for s in sl["segments"]) <= {"trees", "building", "ridge", "mast"}
+
+
+def test_suite_plan_spreads_projections_brackets_aod_and_sun():
+    plan = ps.suite_plan(10, seed=4)
+    combos = {(kw["projection"], kw["bracket"]) for kw in plan}
+    assert combos == {(p, b) for p in PROJECTIONS for b in (False, True)}
+    aod = [kw["aod_550"] for kw in plan]
+    assert min(aod) == pytest.approx(0.05) and max(aod) == pytest.approx(0.5)
+    zen = [kw["sun_zenith_deg"] for kw in plan]
+    assert min(zen) == pytest.approx(20.0) and max(zen) == pytest.approx(80.0)
+    assert any(isinstance(kw["size"], tuple) and kw["size"][0] != kw["size"][1] for kw in plan)  # a 3:4 sensor
+    assert all(kw["size"] == 300 for kw in plan if kw["bracket"])
+    # pairs share the atmosphere and the site's elevation (one Bruneton precomputation), not the sun
+    for a, b in zip(plan[::2], plan[1::2]):
+        assert all(a[k] == b[k] for k in ("aod_550", "angstrom_alpha", "mie_g", "elevation_m"))
+        assert a["sun_zenith_deg"] != b["sun_zenith_deg"]

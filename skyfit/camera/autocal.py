@@ -69,6 +69,10 @@ class SunDetection:
         radius_px: radius of the disc of the same area as the detected blob. [px]
         saturated: True when found as a saturated core, False as an unsaturated peak.
         n_pixels: pixels in the blob. [1]
+        extended: True when the saturated region is no disc (a single frame exposed for the sky saturates
+            the aureole, cut by the horizon or squeezed at the rim): x, y are then its deepest point (the
+            maximum of its distance transform), good for the sun's azimuth about the centre (the heading),
+            less so for its radius (the projection).
     """
 
     x: float
@@ -76,6 +80,7 @@ class SunDetection:
     radius_px: float
     saturated: bool
     n_pixels: int
+    extended: bool = False
 
 
 @dataclasses.dataclass
@@ -275,6 +280,10 @@ _LUMA = np.array([0.2126, 0.7152, 0.0722])
 """Linear sRGB to relative luminance Y (IEC 61966-2-1). [1]"""
 
 
+EXTENDED_MIN_PX = 20
+"""A saturated region that is no disc counts as the sun's aureole from this many pixels on."""
+
+
 def _compact(region, min_ratio: float = 0.2, min_solidity: float = 0.8) -> bool:
     """A blob is compact (disc-like): minor/major axis >= min_ratio and solidity >= min_solidity.
 
@@ -323,6 +332,17 @@ def detect_sun(darkest_rgb: np.ndarray, darkest_saturated: np.ndarray, inside: n
                 best = max(regions, key=lambda r: r.area)
                 y, x = best.centroid
                 return SunDetection(float(x), float(y), math.sqrt(best.area / math.pi), True, int(best.area))
+        # no disc: the largest saturated region, if large, is the sun's aureole; its deepest point
+        regions = skimage.measure.regionprops(skimage.measure.label(sat, connectivity=2))
+        best = max(regions, key=lambda r: r.area) if regions else None
+        if best is not None and best.area >= EXTENDED_MIN_PX:
+            blob = np.zeros_like(sat)
+            blob[tuple(best.coords.T)] = True
+            import scipy.ndimage  # here: scipy loads in ~0.5 s, and only an extended sun needs it
+
+            depth = scipy.ndimage.distance_transform_edt(blob)
+            i0, j0 = np.unravel_index(np.argmax(depth), depth.shape)
+            return SunDetection(float(j0), float(i0), float(depth[i0, j0]), True, int(best.area), extended=True)
     lum = np.where(inside, rgb @ _LUMA, 0.0)
     if not inside.any() or not np.isfinite(lum).all():
         return None

@@ -500,7 +500,9 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     # the projection by evidence: candidates the sun alone cannot tell apart are fitted and scored by their loss
     if scene.candidates and choose_projection:
         best = scene.candidates[0]
-        close = [c for c in scene.candidates if c.score - best.score < 1.0 or scene.detected_sun is None]
+        # an extended saturated region places the sun's azimuth (heading) well, its radius (projection) not
+        vague = scene.detected_sun is None or getattr(scene.detected_sun, "extended", False)
+        close = [c for c in scene.candidates if vague or c.score - best.score < 1.0]
         if len(close) > 1:
             quick = dataclasses.replace(s, max_iter=min(s.max_iter, 25), adam_steps=min(s.adam_steps, 15))
             scores = []
@@ -688,6 +690,8 @@ def photo_result(scene: PhotoScene, blocks: BlockImage, prep, problem, res, conf
     result["camera"] = cam_meta
     result["sun"] = {"zenith_deg": scene.sun_zenith_deg, "azimuth_deg": scene.sun_azimuth_deg, "model_px": model_px,
                      "detected_px": detected_px, "separation_deg": sep,
+                     "detected_kind": None if det is None else ("saturated region's deepest point" if det.extended
+                                                               else "saturated core" if det.saturated else "peak"),
                      "detected_radius_px": None if det is None else float(det.radius_px)}
     result["aerosol"] = {"aod_550": vals["mie_aod_550"], "angstrom_alpha": vals["mie_angstrom_alpha"], "g": vals["mie_g"],
                          "rayleigh_scale": vals["rayleigh_scale"],

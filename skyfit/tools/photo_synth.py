@@ -40,6 +40,19 @@ sensor's raw signal (before clipping) with an unknown scale: truth.json's
 linear value (vignetting divided out) and skyfit's CIE linear sRGB (Y in cd/m^2) of the same
 sky, and ``colour_mismatch_rel`` how far the camera's colours are from CIE's.
 
+Cost (one core, ``OMP_NUM_THREADS=1``, on the shared 2-core machine; the spread is the machine's
+load): the Bruneton tables of :data:`TIGHT_TABLES` for 20 wavelengths plus the 373 x 361 grid take
+11-25 s of CPU (up to 30 s when 7 jobs shared the 2 cores); a whole 600 x 600 case took 13-28 s,
+a 600 x 800 one 27 s, a 300 x 300 bracket of 6-7 frames 11.5-25 s; a second case of the same
+atmosphere (another sun, another camera: the tables are cached) 2.6 s. The full 2017 tables
+(256 x 64, 64 x 16, 32 x 128 x 32 x 8) took 99 s of CPU and more, the 10 nm grid on
+:data:`TIGHT_TABLES` 69 s: over the minute a case may take.
+
+How far from the reference (the full 2017 tables, same 20 wavelengths, 1° x 2° grid up to the
+horizon, AOD 0.15): :data:`TIGHT_TABLES` differ by a median 2.8 % (95th percentile 11 %) of the
+radiance with the sun at 30° zenith and 0.5 % (1.9 %) at 70°; a fit's reduced tables by 9.7 % (33 %)
+and 6.9 % (30 %). So the photos carry physics the fit's own forward model lacks, as real skies do.
+
 What real photos can still do that this generator does not
 -----------------------------------------------------------
 * clouds, contrails, haze layers and horizontal gradients of the aerosol (the atmosphere
@@ -72,16 +85,17 @@ import os
 import time
 from fractions import Fraction
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
+from kornia.color import CFA, raw_to_rgb, rgb_to_raw
+from PIL import Image, TiffImagePlugin
 from torch import Tensor
 
 from ..api import load_atmosphere
 from ..atmosphere import Atmosphere
 from ..camera.fisheye import PROJECTIONS, FisheyeCamera, zenith_azimuth_to_enu
-from ..camera.sensor import synthesize_photo, vignetting_map
+from ..camera.sensor import spectral_response_matrix, synthesize_photo, vignetting_map
 from ..camera.srgb import srgb_encode
 from ..camera.sun import sun_position
 from ..export.envmap import sun_transmittance
@@ -102,6 +116,7 @@ __all__ = [
     "make_skyline",
     "make_case",
     "make_suite",
+    "suite_plan",
 ]
 
 SCHEMA = "skyfit.photo_synth/1"
@@ -432,7 +447,7 @@ def colour_pipeline(name: str) -> dict:
         {"daylight_gains": (3,), "matrix": (3, 3) white-balanced camera RGB -> linear sRGB}.
     """
     if name not in _PIPELINES:
-        import colour
+        import colour  # heavy: imported when used
         m_idt, rgb_w = colour.matrix_idt(_msds(name), colour.SDS_ILLUMINANTS["D65"])
         a = colour.matrix_RGB_to_RGB(colour.RGB_COLOURSPACES["ACES2065-1"], colour.RGB_COLOURSPACES["sRGB"], "CAT02")
         m = a @ m_idt
@@ -462,7 +477,7 @@ _MATERIALS = {
 
 def _reflectance(material: str, wavelengths: np.ndarray) -> np.ndarray:
     """Reflectance of a material on ``wavelengths`` [nm], from colour-science's ColorChecker spectra, shape (W,). [1]"""
-    import colour
+    import colour  # heavy: imported when used
     mat = _MATERIALS[material]
     sd = colour.SDS_COLOURCHECKERS["ColorChecker N Ohta"][mat.patch]
     return mat.scale * np.interp(wavelengths, sd.wavelengths, sd.values)
@@ -505,7 +520,7 @@ def make_skyline(rng: np.random.Generator, horizon_fraction: float, *, sun_azimu
 
     def ragged(m: int, scale: float) -> np.ndarray:
         """1-D correlated noise of m samples with unit spread (smoothed white noise)."""
-        from skimage.filters import gaussian  # image smoothing: scikit-image
+        from skimage.filters import gaussian  # scikit-image, imported when used (a slow import)
         x = gaussian(rng.normal(size=m), sigma=scale, mode="wrap", preserve_range=True)
         return x / (x.std() + 1e-12)
 
@@ -601,7 +616,6 @@ def _marked_time(t: float) -> float:
 
 
 def _exif_bytes(make: str, model: str, local_time: _dt.datetime, exposure_s: float | None, quality: int) -> bytes:
-    from PIL import Image, TiffImagePlugin
     exif = Image.Exif()
     exif[0x010F] = make
     exif[0x0110] = model
@@ -630,7 +644,7 @@ def make_case(seed: int, out_dir: str | Path, *, size: int | tuple[int, int] = 6
               projection: str | None = None, aod_550: float | None = None, angstrom_alpha: float | None = None,
               mie_g: float | None = None, rayleigh_scale: float | None = None, sun_zenith_deg: float | None = None,
               camera: str | None = None, horizon_fraction: float | None = None, n_frames: int | None = None,
-              exposure_ev: float | None = None,
+              exposure_ev: float | None = None, elevation_m: float | None = None,
               settings: SynthSettings = SynthSettings(), time_and_place: dict | None = None,
               save_arrays: bool = True) -> dict:
     """Write one synthetic all-sky photo (or bracket) with its truth into ``out_dir``; return the truth.
@@ -653,6 +667,7 @@ def make_case(seed: int, out_dir: str | Path, *, size: int | tuple[int, int] = 6
         horizon_fraction: share of the horizon behind obstacles (None: random; 0: no obstacles). [1]
         n_frames: bracket frames (None: random 3-7, raised when the sun needs more range).
         exposure_ev: exposure compensation of the metered exposure (None: random in [-1.5, 0.7]). [EV]
+        elevation_m: the site's elevation (None: random in [0, 1000]). [m]
         settings: the sky render settings (:data:`TEST_SETTINGS` for fast tests).
         time_and_place: reuse :func:`find_time_for_zenith`'s dict (its sun zenith wins over ``sun_zenith_deg``).
         save_arrays: also write ``truth_arrays.npz``.
@@ -672,7 +687,7 @@ def make_case(seed: int, out_dir: str | Path, *, size: int | tuple[int, int] = 6
 
     # ---- time, place, sun
     zenith = float(rng.uniform(20.0, 80.0)) if sun_zenith_deg is None else float(sun_zenith_deg)
-    tp = time_and_place or find_time_for_zenith(zenith, rng)
+    tp = time_and_place or find_time_for_zenith(zenith, rng, elevation=elevation_m)
     sun_info = tp["sun"]
     zenith = sun_info["zenith_deg"] if time_and_place is not None else zenith
     local_time = _dt.datetime.fromisoformat(tp["time"])
@@ -688,7 +703,6 @@ def make_case(seed: int, out_dir: str | Path, *, size: int | tuple[int, int] = 6
     grid = sky_grid(values, sun_info["zenith_deg"], settings)  # at 1 AU: shared by every date
     d2 = 1.0 / sun_info["distance_au"] ** 2  # radiance is linear in the solar irradiance
     lam = grid.wavelengths
-    n_w = lam.shape[0]
 
     # ---- camera geometry and pixel directions
     cam = _draw_camera(rng, shape, projection)
@@ -734,7 +748,7 @@ def make_case(seed: int, out_dir: str | Path, *, size: int | tuple[int, int] = 6
     seg_px = segid[k_px]
     occluded = cover + ground  # fraction of each pixel not sky
 
-    from skimage.filters import gaussian  # texture: smoothed noise fields (scikit-image)
+    from skimage.filters import gaussian  # scikit-image, imported when used (a slow import): texture fields
     tex_fine = torch.from_numpy(gaussian(rng.normal(size=shape), sigma=0.8 * w / 600 + 0.3))
     tex_coarse = torch.from_numpy(gaussian(rng.normal(size=shape), sigma=4.0 * w / 600 + 0.5))
     tex_fine, tex_coarse = tex_fine / tex_fine.std(), tex_coarse / tex_coarse.std()
@@ -813,7 +827,6 @@ def make_case(seed: int, out_dir: str | Path, *, size: int | tuple[int, int] = 6
     rw, sens = camera_sensitivities(camera_name)
     source, bayer, make, model_name = CAMERA_SENSITIVITIES[camera_name]
     response = (torch.from_numpy(rw), torch.from_numpy(sens))
-    from ..camera.sensor import spectral_response_matrix
     m_resp = spectral_response_matrix(lam, response[1], response[0])  # (W_l, 3)
     drop = float(rng.uniform(0.0, 0.3))
     wv = float(rng.uniform(0.3, 0.9))
@@ -881,8 +894,6 @@ def make_case(seed: int, out_dir: str | Path, *, size: int | tuple[int, int] = 6
     pure_sky = valid & (occluded == 0)
     psf_share = (flare + extras)[..., i550] / total[..., i550].clamp(min=1e-30)
     frames = []
-    from PIL import Image
-    from kornia.color import CFA, raw_to_rgb, rgb_to_raw
     frame_dir = out / "bracket" if bracket else out
     frame_dir.mkdir(parents=True, exist_ok=True)
     gen = torch.Generator().manual_seed(int(seed) * 1009 + 17)
@@ -1026,47 +1037,65 @@ def make_case(seed: int, out_dir: str | Path, *, size: int | tuple[int, int] = 6
     return truth
 
 
+def suite_plan(n: int = 10, seed: int = 0, *, size: int = 600, bracket_size: int = 300, share_sky: bool = True,
+               non_square_every: int = 4) -> list[dict]:
+    """The :func:`make_case` keyword arguments of each case of :func:`make_suite` (no rendering).
+
+    Case i uses projection ``PROJECTIONS[i % 5]`` and is a bracket when ``(i // 5 + i % 5) % 2 == 1`` (ten
+    cases cover every projection with and without a bracket); AOD 550 and sun zenith are stratified
+    (log-spaced 0.05-0.5 and evenly 20-80° in a seeded order). With ``share_sky`` pairs of cases share an
+    atmosphere and the site's elevation (not the sun), so the Bruneton tables are computed once for both.
+    Every ``non_square_every``-th single photo has a 3:4 sensor (height ``size``).
+    """
+    rng = np.random.default_rng(seed)
+    n_atm = (n + 1) // 2 if share_sky else n
+    aods = np.exp(np.linspace(math.log(0.05), math.log(0.5), max(n_atm, 1)))[rng.permutation(max(n_atm, 1))]
+    zeniths = np.linspace(20.0, 80.0, max(n, 1))[rng.permutation(max(n, 1))]
+    plan = []
+    singles = 0
+    for i in range(n):
+        bracket = (i // len(PROJECTIONS) + i % len(PROJECTIONS)) % 2 == 1
+        a = i // 2 if share_sky else i
+        arng = np.random.default_rng([seed, a])
+        kw = {"seed": int(seed) * 1000 + i, "projection": PROJECTIONS[i % len(PROJECTIONS)], "bracket": bracket,
+              "aod_550": float(aods[a]), "angstrom_alpha": float(arng.uniform(0.5, 1.8)),
+              "mie_g": float(arng.uniform(0.6, 0.85)), "elevation_m": float(arng.uniform(0.0, 1000.0)),
+              "sun_zenith_deg": float(zeniths[i])}
+        if bracket:
+            kw["size"] = bracket_size
+        else:
+            singles += 1
+            square = not (non_square_every and singles % non_square_every == 0)
+            kw["size"] = size if square else (size, (size * 4 // 3) // 2 * 2)
+        plan.append(kw)
+    return plan
+
+
 def make_suite(out_dir: str | Path, n: int = 10, seed: int = 0, *, size: int = 600, bracket_size: int = 300,
                settings: SynthSettings = SynthSettings(), share_sky: bool = True, non_square_every: int = 4,
                progress=None) -> list[dict]:
     """``n`` cases in ``out_dir/case_NNN`` spread over the five projections, with and without brackets.
 
-    Case i uses projection ``PROJECTIONS[i % 5]`` and is a bracket when ``(i // 5 + i) % 2 == 1`` (ten
-    cases cover every projection with and without a bracket); AOD 550 and sun zenith are stratified
-    (log-spaced 0.05-0.5 and 20-80° in a seeded order). With ``share_sky`` pairs of cases share an
-    atmosphere (not the sun), so the Bruneton tables are computed once for both. Every
-    ``non_square_every``-th single photo has a 3:4 sensor.
+    The spread is :func:`suite_plan`'s: every projection with and without a bracket in each ten cases,
+    AOD 550 log-spaced over 0.05-0.5, sun zenith over 20-80°, a 3:4 sensor every few single photos;
+    pairs of cases share an atmosphere (``share_sky``) so that one Bruneton precomputation serves both.
 
     Returns:
         The truth dicts, also summarised in ``out_dir/suite.json``.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed)
-    n_atm = (n + 1) // 2 if share_sky else n
-    aods = np.exp(np.linspace(math.log(0.05), math.log(0.5), max(n_atm, 1)))[rng.permutation(max(n_atm, 1))]
-    zeniths = np.linspace(20.0, 80.0, max(n, 1))[rng.permutation(max(n, 1))]
     truths = []
-    singles = 0
-    for i in range(n):
-        projection = PROJECTIONS[i % len(PROJECTIONS)]
-        bracket = (i // len(PROJECTIONS) + i) % 2 == 1
-        a = i // 2 if share_sky else i
-        arng = np.random.default_rng([seed, a])
-        atm = {"aod_550": float(aods[a]), "angstrom_alpha": float(arng.uniform(0.5, 1.8)),
-               "mie_g": float(arng.uniform(0.6, 0.85))}
-        if bracket:
-            shape = bracket_size
-        else:
-            singles += 1
-            shape = (size, (size * 4 // 3) // 2 * 2) if non_square_every and singles % non_square_every == 0 else size
+    for i, kw in enumerate(suite_plan(n, seed, size=size, bracket_size=bracket_size, share_sky=share_sky,
+                                      non_square_every=non_square_every)):
+        kw = dict(kw)
         t0 = time.perf_counter()
-        truth = make_case(int(seed) * 1000 + i, out / f"case_{i:03d}", size=shape, bracket=bracket,
-                          projection=projection, sun_zenith_deg=float(zeniths[i]), settings=settings, **atm)
+        truth = make_case(kw.pop("seed"), out / f"case_{i:03d}", settings=settings, **kw)
         truths.append(truth)
         if progress:
-            progress(f"case_{i:03d}: {projection}, {'bracket' if bracket else 'single'}, AOD {atm['aod_550']:.3f}, "
-                     f"sun zenith {truth['sun']['zenith_deg']:.2f}, {time.perf_counter() - t0:.1f} s")
+            progress(f"case_{i:03d}: {kw['projection']}, {'bracket' if kw['bracket'] else 'single'}, "
+                     f"AOD {kw['aod_550']:.3f}, sun zenith {truth['sun']['zenith_deg']:.2f}, "
+                     f"{time.perf_counter() - t0:.1f} s")
     summary = [{"case": f"case_{i:03d}", "projection": t["camera"]["projection"], "bracket": t["bracket"] is not None,
                 "mie_aod_550": t["atmosphere"]["parameters"]["mie_aod_550"], "sun_zenith_deg": t["sun"]["zenith_deg"],
                 "time": t["time"], "location": t["location"], "case_wall_s": t["generator"]["case_wall_s"]}
