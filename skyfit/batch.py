@@ -31,7 +31,6 @@ import datetime as _dt
 import glob
 import hashlib
 import json
-import logging
 import math
 import os
 import re
@@ -56,7 +55,7 @@ from .fit.results import check_result, save_result
 from .fit.run import run_fit
 from .io.atomic import atomic_path, check_writable, write_text_atomic
 from .io.kider import is_kider_capture_name
-from .io.photo import EXR_EXTENSIONS, HDR_EXTENSIONS, PHOTO_EXTENSIONS, is_photo_path
+from .io.photo import EXR_EXTENSIONS, HDR_EXTENSIONS, PHOTO_EXTENSIONS, exif_tags, is_photo_path
 
 RESULT_NAME = "RESULT.json"
 TABLE_NAMES = ("results.parquet", "results.csv")
@@ -221,18 +220,7 @@ def exif_time(path: str | Path) -> tuple[_dt.datetime | None, str | None]:
     DateTimeOriginal (tag 36867; else DateTimeDigitized, else the IFD0 DateTime) with SubSecTimeOriginal when
     present; the offset from OffsetTimeOriginal (tag 36881; EXIF 2.31), else OffsetTime. (None, None) when the
     file has no EXIF or no readable time (``0000:00:00 00:00:00`` and blanks count as none)."""
-    import exifread  # only photos need it
-
-    xlog = logging.getLogger("exifread")
-    level = xlog.level
-    xlog.setLevel(logging.ERROR)  # exifread warns "file does not have exif data" for every plain PNG
-    try:
-        with open(path, "rb") as f:
-            tags = exifread.process_file(f, details=False)
-    except Exception:  # noqa: BLE001 - EXIF is optional: a file exifread cannot parse simply has none
-        tags = {}
-    finally:
-        xlog.setLevel(level)
+    tags = exif_tags(path)
 
     def text(*names) -> str | None:
         for n in names:

@@ -1,7 +1,6 @@
 """The photo fit's own pieces: the camera's response in the fit, censoring, blocks, the fitted camera."""
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest

@@ -19,9 +19,11 @@ __all__ = ["grow_outlier_mask", "obstacle_mask", "sun_mask"]
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
 """Linear sRGB to relative luminance Y (IEC 61966-2-1). [1]"""
 
-SUN_HALO_FACTOR = 2.0
-"""Radius of the sun mask over the angular radius of the saturated blob: the flare halo reaches beyond the
-saturated core, roughly as far again (a choice, checked on the synthetic aureoles of tests/test_autocal.py). [1]"""
+SUN_HALO_MARGIN_DEG = 3.0
+"""How far beyond the saturated blob's angular radius the sun mask reaches: a lens's flare halo falls off
+within a few degrees (a power law past 0.5-2 deg), while the unsaturated aureole beyond it is the photo's best
+measure of the aerosol. (Twice the blob's radius, tried first, masked 20-40 deg around the sun of a hazy sky
+and left the aerosol to the horizon, where vignetting mimics it: docs/photos.md.) [deg]"""
 
 
 def _check_shape(shape, camera: FisheyeCamera) -> tuple[int, int]:
@@ -56,7 +58,7 @@ def sun_mask(shape, sun: SunDetection | None, camera: FisheyeCamera, sun_zenith_
     """The sun's disc and its flare halo, around both the detected and the computed sun.
 
     The angular radius of the saturated blob (the mean angle between the blob's centre and four points
-    ``radius_px`` away from it) times :data:`SUN_HALO_FACTOR`, at least ``min_radius_deg``, is masked
+    ``radius_px`` away from it) plus :data:`SUN_HALO_MARGIN_DEG`, at least ``min_radius_deg``, is masked
     around the computed sun's direction and around the detected sun's direction (they differ by the
     camera's error).
 
@@ -87,7 +89,7 @@ def sun_mask(shape, sun: SunDetection | None, camera: FisheyeCamera, sun_zenith_
                 if d1 is not None:
                     angles.append(math.degrees(math.acos(min(1.0, float(d0 @ d1)))))
             if angles:
-                radius = max(radius, SUN_HALO_FACTOR * float(np.mean(angles)))
+                radius = max(radius, float(np.mean(angles)) + SUN_HALO_MARGIN_DEG)
     cos_r = math.cos(math.radians(radius))
     out = np.zeros(camera.shape, dtype=bool)
     for c in centres:

@@ -99,7 +99,7 @@ def observation_from_encoded(
     )
 
 
-def _png_bit_depth(path: str) -> int | None:
+def png_bit_depth(path: str) -> int | None:
     """Bit depth from a PNG's IHDR chunk, or None for a file that is not PNG."""
     with open(path, "rb") as f:
         head = f.read(25)
@@ -152,7 +152,7 @@ def load_ldr_photo(
     except Exception as e:  # noqa: BLE001 - reader errors vary by plugin
         raise ValueError(f"cannot read photo {p}: {e}") from None
     arr = np.asarray(arr)
-    if arr.dtype == np.uint8 and _png_bit_depth(p) == 16:
+    if arr.dtype == np.uint8 and png_bit_depth(p) == 16:
         # Pillow (skimage's reader) turns 16-bit RGB(A) PNG into 8 bits without a word.
         raise ValueError(
             f"photo {p}: a 16-bit RGB PNG that the installed reader (Pillow) decodes to 8 bits only; "
@@ -185,4 +185,5 @@ __all__ = [
     "PhotoObservation",
     "load_ldr_photo",
     "observation_from_encoded",
+    "png_bit_depth",
 ]

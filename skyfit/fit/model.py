@@ -193,7 +193,10 @@ class FitProblem:
         self.n_evaluations = 0
         self.frozen_tables = None
         """Multiple-scattering tables to use instead of rebuilding them per evaluation (a lagged fit:
-        :func:`skyfit.fit.photo.fit_scene` freezes Hillaire's LUT at each pass's start and refreshes it)."""
+        :func:`skyfit.fit.photo.lagged_fit` freezes Hillaire's LUT at each fit's start and refreshes it)."""
+        self.frozen_factor: list[Tensor] | None = None
+        """Per observation, a factor (N_i, W) on the rendered radiance: all orders over the first, computed
+        elsewhere and held fixed (:func:`skyfit.fit.photo.lagged_fit` with Bruneton's tables). [1]"""
 
     # -- forward ----------------------------------------------------------------
     def sun_vectors(self, phys: dict, i: int) -> Tensor:
@@ -231,7 +234,10 @@ class FitProblem:
             sun = self.sun_vectors(phys, i)
             if sun.ndim == 2:
                 sun = sun[o.mask]
-            out.append(renderers[o.altitude_m](self.view_directions(phys, i), sun) * self.solar_scale[i])
+            rad = renderers[o.altitude_m](self.view_directions(phys, i), sun)
+            if self.frozen_factor is not None:
+                rad = rad * self.frozen_factor[i]
+            out.append(rad * self.solar_scale[i])
         return out
 
     def predict_unscaled(self, phys: dict) -> list[Tensor]:

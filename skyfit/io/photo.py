@@ -71,7 +71,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..camera.photo_io import DEFAULT_BLACK_LEVEL, DEFAULT_CLIP_LEVEL
+from ..camera.photo_io import DEFAULT_BLACK_LEVEL, DEFAULT_CLIP_LEVEL, png_bit_depth
 from ..camera.srgb import srgb_decode, srgb_encode_slope
 from .exr import ExrError, read_exr
 from .hdr import HdrError, read_hdr
@@ -246,22 +246,27 @@ def _exif_number(tag) -> float | None:
     return x if math.isfinite(x) and x > 0 else None
 
 
-def _read_exif(path: str) -> dict:
-    """EXIF facts of a file (None where absent): exposure_s, f_number, iso, datetime_original, camera_make/model."""
+def exif_tags(path: str | Path) -> dict:
+    """The EXIF tags of an image file as exifread reads them ({} when it has none or exifread cannot parse it)."""
     import exifread  # here: only photos need it
 
-    out = {"exposure_s": None, "f_number": None, "iso": None, "datetime_original": None,
-           "camera_make": None, "camera_model": None}
     xlog = logging.getLogger("exifread")
     level = xlog.level
     xlog.setLevel(logging.ERROR)  # exifread warns "file does not have exif data" for every plain PNG
     try:
         with open(path, "rb") as f:
-            tags = exifread.process_file(f, details=False)
+            return exifread.process_file(f, details=False)
     except Exception:  # noqa: BLE001 - EXIF is optional: a file exifread cannot parse simply has none
-        tags = {}
+        return {}
     finally:
         xlog.setLevel(level)
+
+
+def _read_exif(path: str) -> dict:
+    """EXIF facts of a file (None where absent): exposure_s, f_number, iso, datetime_original, camera_make/model."""
+    out = {"exposure_s": None, "f_number": None, "iso": None, "datetime_original": None,
+           "camera_make": None, "camera_model": None}
+    tags = exif_tags(path)
 
     def first(*names):
         for n in names:
@@ -323,15 +328,6 @@ def _one_line(e: BaseException) -> str:
     return f"{type(e).__name__}: {s[0]}" if s else type(e).__name__
 
 
-def _png_bit_depth(path: str) -> int | None:
-    # The IHDR check of skyfit.camera.photo_io (private there): Pillow decodes 16-bit RGB PNG to 8 bits silently.
-    with open(path, "rb") as f:
-        head = f.read(25)
-    if len(head) < 25 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
-        return None
-    return head[24]
-
-
 def _kind(ext: str) -> str:
     if ext in (".jpg", ".jpeg"):
         return "jpeg"
@@ -359,7 +355,7 @@ def _read_ldr_array(path: str, kind: str) -> np.ndarray:
     except Exception as e:  # noqa: BLE001 - reader errors vary by plugin
         raise PhotoError(f"photo {path}: cannot read the image ({_one_line(e)})") from None
     arr = np.asarray(arr)
-    if kind == "png" and arr.dtype == np.uint8 and _png_bit_depth(path) == 16:
+    if kind == "png" and arr.dtype == np.uint8 and png_bit_depth(path) == 16:
         raise PhotoError(f"photo {path}: a 16-bit RGB PNG that the installed reader (Pillow) decodes to 8 bits only; "
                          "save it as a 16-bit TIFF instead")
     return arr
@@ -578,6 +574,46 @@ def _estimate_response(frames: list[_Frame], order: list[int], rel_exp, step: in
 def _log_ratio_samples(a: _Frame, b: _Frame, ra: _Response, rb: _Response, step: int, lo: float, hi: float) -> np.ndarray:
     ca, cb = _pair_samples(a, b, step, lo, hi)
     return np.log(np.maximum(rb.decode(cb), 1e-300)) - np.log(np.maximum(ra.decode(ca), 1e-300))
+
+
+SCENE_BLOCK: int = 8
+"""Side of the blocks whose median log ratio the scene check compares [px]: a different scene differs over
+large areas, noise (shot, JPEG, demosaicing, a colour matrix: 15-25 % per pixel in dark frames of a realistic
+camera) averages out over a block."""
+SCENE_MIN_BLOCKS: int = 12
+"""Fewest blocks well exposed in both frames for the scene check to judge a pair by blocks."""
+SCENE_PIXEL_MIN: int = 2000
+"""Fewest channel values well exposed in both frames for the per-pixel check (a few dozen near the sun's glare
+scatter widely in any bracket)."""
+SCENE_PIXEL_SPREAD_MAX: float = 0.7
+"""Largest robust spread of the per-pixel log ratio [1] (a factor 2): a realistic camera's dark frames scatter
+by 15-50 % per pixel (docs/photos.md), unrelated pixels (a shuffled or another scene) by a factor 3 or more."""
+
+
+def _block_log_ratios(a: _Frame, b: _Frame, ra: _Response, rb: _Response, lo: float, hi: float) -> np.ndarray:
+    """Median log ratio b/a of each SCENE_BLOCK x SCENE_BLOCK block with at least a quarter of its channel values
+    well exposed in both frames and away from clipping (the glare of a clipped pixel spreads by a few px through
+    demosaicing and JPEG), shape (n_blocks,)."""
+    from scipy.ndimage import binary_dilation  # here: scipy loads in ~0.5 s, only brackets need it
+
+    ca = a.codes.astype(np.float64) / a.max_code
+    cb = b.codes.astype(np.float64) / b.max_code
+    clipped = binary_dilation((a.high | b.high).any(-1), iterations=3)
+    ok = ((ca >= lo) & (ca <= hi) & (cb >= lo) & (cb <= hi) & ~a.low & ~b.low
+          & (a.valid & b.valid & ~clipped)[..., None])
+    d = np.where(ok, np.log(np.maximum(rb.decode(cb), 1e-300)) - np.log(np.maximum(ra.decode(ca), 1e-300)), np.nan)
+    k = SCENE_BLOCK
+    h, w = (d.shape[0] // k) * k, (d.shape[1] // k) * k
+    blocks = d[:h, :w].reshape(h // k, k, w // k, k, 3).swapaxes(1, 2).reshape(h // k, w // k, -1)
+    enough = np.isfinite(blocks).sum(-1) >= (k * k * 3) // 4
+    if not enough.any():
+        return np.empty(0)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN blocks are left out just below
+        med = np.nanmedian(blocks[enough], axis=-1)
+    return med[np.isfinite(med)]
 
 
 # --------------------------------------------------------------------------
@@ -891,17 +927,22 @@ def _read_bracket(folder: str, linear: bool, exposures, response) -> LinearPhoto
 
     # One scene? After exposure normalisation the frames must agree over the pixels well exposed in both.
     for i, j in zip(order[:-1], order[1:]):
-        d = _log_ratio_samples(frames[i], frames[j], responses[i], responses[j], step, *SCENE_CHECK_RANGE)
-        if d.size < MIN_OVERLAP:
-            notes.append(f"frames {name[i]} and {name[j]} share too few well-exposed pixels to check they show one scene")
+        shift = math.log(rel_exp[j] / rel_exp[i])
+        px = _log_ratio_samples(frames[i], frames[j], responses[i], responses[j], step, *SCENE_CHECK_RANGE) - shift
+        blocks = _block_log_ratios(frames[i], frames[j], responses[i], responses[j], *SCENE_CHECK_RANGE) - shift
+        checks = [(d, lim, what) for d, lim, what, least in (
+            (blocks, SCENE_SPREAD_MAX, f"well-exposed {SCENE_BLOCK}x{SCENE_BLOCK} px blocks", SCENE_MIN_BLOCKS),
+            (px, SCENE_PIXEL_SPREAD_MAX, "well-exposed values", SCENE_PIXEL_MIN)) if d.size >= least]
+        if not checks:
+            notes.append(f"frames {name[i]} and {name[j]} share too few well-exposed areas to check they show one scene")
             continue
-        d = d - math.log(rel_exp[j] / rel_exp[i])
-        centre = float(np.median(d))
-        spread = 1.4826 * float(np.median(np.abs(d - centre)))
-        if spread > SCENE_SPREAD_MAX:
-            raise PhotoError(f"photo {folder}: frames {name[i]} and {name[j]} disagree by {100 * math.expm1(spread):.0f} % "
-                             f"(robust spread over {d.size} well-exposed values) after exposure normalisation; "
-                             "not one scene's bracket")
+        for d, lim, what in checks:
+            centre = float(np.median(d))
+            spread = 1.4826 * float(np.median(np.abs(d - centre)))
+            if spread > lim:
+                raise PhotoError(f"photo {folder}: frames {name[i]} and {name[j]} disagree by {100 * math.expm1(spread):.0f} % "
+                                 f"(robust spread over {d.size} {what}) after exposure normalisation; not one scene's bracket")
+        centre = float(np.median(checks[0][0]))
         if abs(math.expm1(centre)) > EXPOSURE_MISMATCH_NOTE:
             notes.append(f"the pixels put {name[j]} at {math.exp(centre):.3f} times the {esrc[j]} exposure ratio to "
                          f"{name[i]}")
