@@ -237,9 +237,14 @@ def test_sun_mask_covers_detected_and_computed_sun_and_grows_with_the_blob():
         assert m[int(round(float(sy))), int(round(float(sx)))] and m[int(round(float(sy))), int(round(float(sx) + 6))]
     # angular radii from the spherical law of cosines: the computed sun at zenith 50°, r = R90 50/90 px from the
     # centre (equidistant, 100/90 px per degree radially); a blob of 6 px spans 6 / (100/90) = 5.40° radially
-    # and 2 asin(sin(50°) sin(3 / r)) = 4.74° tangentially: mask radius 2 x mean = 10.14°
+    # and 2 asin(sin(50°) sin(3 / r)) = 4.74° tangentially: mask radius mean + SUN_HALO_MARGIN_DEG (3°) = 8.07°
     r = 100.0 * 50.0 / 90.0
-    alpha = 2 * (2 * 6.0 / (100.0 / 90.0) + 2 * math.degrees(2 * math.asin(math.sin(math.radians(50)) * math.sin(3.0 / r)))) / 4
+
+    def blob_deg(px):
+        return (2 * px / (100.0 / 90.0) + 2 * math.degrees(2 * math.asin(math.sin(math.radians(50)) * math.sin(px / 2 / r)))) / 4
+
+    alpha = blob_deg(6.0) + 3.0
+    alpha_small = blob_deg(1.0) + 3.0  # a 1 px blob: 0.90° + 3°
     v, valid = cam.pixel_vectors()
     v = torch.where(valid[..., None], v, torch.zeros_like(v))
 
@@ -249,7 +254,8 @@ def test_sun_mask_covers_detected_and_computed_sun_and_grows_with_the_blob():
     g_comp = gamma(zenith_azimuth_to_enu(_t(50.0), _t(140.0)))
     g_det = gamma(cam.pixel_to_direction(torch.tensor(float(sx) + 6.0, dtype=torch.float64),
                                          torch.tensor(float(sy), dtype=torch.float64)))
-    assert m_small[(g_comp < 2.9) | (g_det < 2.9)].all() and not m_small[(g_comp > 3.1) & (g_det > 3.1)].any()
+    assert m_small[(g_comp < alpha_small - 0.3) | (g_det < alpha_small - 0.3)].all()
+    assert not m_small[(g_comp > alpha_small + 0.3) & (g_det > alpha_small + 0.3)].any()
     assert m_big[(g_comp < alpha - 0.3) | (g_det < alpha - 0.3)].all()
     assert not m_big[(g_comp > alpha + 0.3) & (g_det > alpha + 0.3)].any()
 
