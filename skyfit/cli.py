@@ -522,6 +522,16 @@ def _add_fit_options(p, D) -> None:
     p.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
 
 
+def _add_sun_flags(p) -> None:
+    """The sun of ``render`` and ``envmap``: zenith and azimuth, or a time and a place (NREL SPA)."""
+    p.add_argument("--sun-zenith", type=float, help="sun zenith angle [deg]")
+    p.add_argument("--sun-azimuth", type=float, default=180.0, help="sun azimuth, clockwise from North [deg] (default %(default)g)")
+    p.add_argument("--time", help="ISO 8601 timestamp with a UTC offset or an IANA time zone name (daylight saving "
+                   "time from the tz database), e.g. 2013-05-27T09:30:00-04:00, '2013-05-27T09:30:00 America/New_York' "
+                   "or 2013-05-27T09:30:00[America/New_York] (sun by NREL SPA)")
+    p.add_argument("--location", help="LAT,LON[,ELEV]: degrees North, degrees East, metres (with --time)")
+
+
 def _add_photo_options(p) -> None:
     """The flags of a photo (``fit PHOTO``; ``evaluate RESULT PHOTO`` takes --time and --location)."""
     p.add_argument("--time", help="photo: when it was taken, ISO 8601 with its UTC offset or a zone name "
@@ -906,12 +916,7 @@ def _add_envmap_parser(sub) -> None:
                    help="latlong: H x 2H, row 0 straight up, column 0's left edge North, East at W/4; "
                         "cubemap: faces +X,-X,+Y,-Y,+Z,-Z of (x=East, y=Up, z=South) as an N x 6N strip (default latlong)")
     v.add_argument("--size", type=int, default=512, help="lat-long height H (width 2H) or cube face edge N, even [px] (default 512)")
-    v.add_argument("--sun-zenith", type=float, help="sun zenith angle [deg]")
-    v.add_argument("--sun-azimuth", type=float, default=180.0, help="sun azimuth, clockwise from North [deg] (default 180)")
-    v.add_argument("--time", help="ISO 8601 timestamp with a UTC offset or an IANA time zone name (daylight saving "
-                   "time from the tz database), e.g. 2013-05-27T09:30:00-04:00, '2013-05-27T09:30:00 America/New_York' "
-                   "or 2013-05-27T09:30:00[America/New_York] (sun by NREL SPA)")
-    v.add_argument("--location", help="LAT,LON[,ELEV]: degrees North, degrees East, metres (with --time)")
+    _add_sun_flags(v)
     v.add_argument("--sun-disk", action="store_true", help="add the attenuated solar disk (its flux exact at any size)")
     v.add_argument("--preview", action="store_true", help="also write a tone-mapped PNG beside --out (same name, .png)")
     v.add_argument("--spectral", action="store_true", help="also write one channel L<nm> per wavelength (.exr only)")
@@ -1123,12 +1128,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--up-azimuth", type=float, default=0.0, help="azimuth of the image's up direction [deg] (default %(default)g)")
     r.add_argument("--tilt", metavar="DEG,DEG", help="optical axis's zenith angle and the azimuth it leans toward [deg]")
     r.add_argument("--max-zenith", type=float, help="field of view: largest angle from the optical axis [deg] (default 90)")
-    r.add_argument("--sun-zenith", type=float, help="sun zenith angle [deg]")
-    r.add_argument("--sun-azimuth", type=float, default=180.0, help="sun azimuth, clockwise from North [deg] (default %(default)g)")
-    r.add_argument("--time", help="ISO 8601 timestamp with a UTC offset or an IANA time zone name (daylight saving "
-                   "time from the tz database), e.g. 2013-05-27T09:30:00-04:00, '2013-05-27T09:30:00 America/New_York' "
-                   "or 2013-05-27T09:30:00[America/New_York] (sun by NREL SPA)")
-    r.add_argument("--location", help="LAT,LON[,ELEV]: degrees North, degrees East, metres (with --time)")
+    _add_sun_flags(r)
     r.add_argument("--altitude", type=float, default=0.0, help="observer altitude above the ground [m] (default %(default)g)")
     r.add_argument("--integrator", default="taylor", help="NAME[:key=value,...], e.g. trapezoid:samples=64, taylor:a=0.45,b=0.45 (default %(default)s)")
     r.add_argument("--view-samples", type=int, default=32, help="samples of the outer (view-ray) integral (default %(default)s)")

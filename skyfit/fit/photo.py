@@ -45,8 +45,8 @@ from ..camera.autocal import CalibrationError, cameras_from_sun, detect_circle, 
 from ..camera.fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, zenith_azimuth_to_enu
 from ..camera.masks import grow_outlier_mask, obstacle_mask, sun_mask
 from ..camera.sun import parse_location, parse_time, sun_position
-from ..io.photo import LinearPhoto, PhotoError, read_photo
-from .data import DataError, Observation
+from ..io.photo import LinearPhoto, read_photo
+from .data import Observation
 from .model import FitProblem
 from .optimise import fit as optimise
 from .problem import fit_settings, make_model, prepare
@@ -250,8 +250,7 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
             detected = detect_sun(photo.darkest, photo.darkest_saturated, inside & inside_valid)
             candidates = cameras_from_sun((h, w), circle, detected, sz, sa, projections=tuple(projections))
             cam = candidates[0].camera
-            for c in candidates[:1]:
-                notes.extend(c.notes)
+            notes.extend(candidates[0].notes)
         else:
             if isinstance(camera, (str, Path)):
                 camera = read_camera(camera)
@@ -560,8 +559,8 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         grown = grow_outlier_mask(_upsample(np.nan_to_num(rel, nan=0.0), blocks.step, scene.photo.rgb.shape[:2]),
                                   ~scene.excluded, scene.camera, threshold=OUTLIER_THRESHOLD)
         # obstacles stand on the horizon or far from the sun; a misfit of the aureole is the model's, not a mask's
-        grown &= (_elevation_deg(scene.camera) < OUTLIER_MAX_ELEVATION_DEG) | (
-            _angle_to_sun_deg(scene.camera, scene.sun_zenith_deg, scene.sun_azimuth_deg) > OUTLIER_SUN_DISTANCE_DEG)
+        elevation, to_sun = _sky_angles(scene.camera, scene.sun_zenith_deg, scene.sun_azimuth_deg)
+        grown &= (elevation < OUTLIER_MAX_ELEVATION_DEG) | (to_sun > OUTLIER_SUN_DISTANCE_DEG)
         if grown.any():
             scene.masks["outliers"] = grown & ~scene.excluded
             start2 = {n: v for n, v in problem.param.physical_dict(res.x).items() if n in s.free}
@@ -676,21 +675,16 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
     return res
 
 
-def _elevation_deg(cam: FisheyeCamera) -> np.ndarray:
-    """Elevation of every pixel's view (-90 outside the field of view), (H, W). [deg]"""
-    with torch.no_grad():
-        vec, valid = cam.pixel_vectors(torch.float64)
-    return np.where(valid.numpy(), np.degrees(np.arcsin(np.clip(np.nan_to_num(vec[..., 2].numpy()), -1, 1))), -90.0)
-
-
-def _angle_to_sun_deg(cam: FisheyeCamera, zenith_deg: float, azimuth_deg: float) -> np.ndarray:
-    """Angle between every pixel's view and the sun (0 outside the field of view), (H, W). [deg]"""
+def _sky_angles(cam: FisheyeCamera, zenith_deg: float, azimuth_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every pixel's elevation (-90 outside the field of view) and angle to the sun (0 outside), (H, W) each. [deg]"""
     with torch.no_grad():
         vec, valid = cam.pixel_vectors(torch.float64)
         sun = zenith_azimuth_to_enu(torch.tensor(math.radians(zenith_deg), dtype=torch.float64),
                                     torch.tensor(math.radians(azimuth_deg), dtype=torch.float64))
-    cos = np.clip(np.nan_to_num(vec.numpy() @ sun.numpy(), nan=1.0), -1, 1)
-    return np.where(valid.numpy(), np.degrees(np.arccos(cos)), 0.0)
+    v, ok = np.nan_to_num(vec.numpy()), valid.numpy()
+    elevation = np.where(ok, np.degrees(np.arcsin(np.clip(v[..., 2], -1, 1))), -90.0)
+    to_sun = np.where(ok, np.degrees(np.arccos(np.clip(np.where(ok, v @ sun.numpy(), 1.0), -1, 1))), 0.0)
+    return elevation, to_sun
 
 
 def _upsample(a: np.ndarray, step: int, shape: tuple[int, int]) -> np.ndarray:
@@ -821,11 +815,8 @@ def fit_photo(photo, *, time: str, location, config: dict, camera=None, mask=Non
         camera = camera_meta
     elif isinstance(camera, dict):
         camera_meta = camera
-    try:
-        scene = prepare_scene(photo, time=time, location=location, camera=camera, mask=mask, exposures=exposures,
-                              linear=linear, response=response)
-    except (PhotoError, CalibrationError, DataError, PhotoFitError):
-        raise
+    scene = prepare_scene(photo, time=time, location=location, camera=camera, mask=mask, exposures=exposures,
+                          linear=linear, response=response)
     return fit_scene(scene, copy.deepcopy(config), overrides=overrides, camera_meta=camera_meta, laplace=laplace,
                      progress=progress, device=device)
 
