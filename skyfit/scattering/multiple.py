@@ -77,7 +77,7 @@ from .bruneton_tables import (
     transmittance_index,
     transmittance_texel_params,
 )
-from .phase import atmosphere_mie_phase, rayleigh_phase
+from .phase import atmosphere_mie_phase, rayleigh_phase, spectral_mie_phase
 from .single import sun_visible_fraction
 
 BELOW_MU_S_MIN = ("raise", "clamp", "zero")
@@ -280,7 +280,7 @@ def _order_radiance(ctx, tables: tuple[Tensor, ...], order: int, r, mu, mu_s, nu
     idx = _scat_index(ctx, r, mu, mu_s, nu, hits)
     if order == 1:
         s_r, s_m = interpolate(list(tables), idx)
-        return s_r * rayleigh_phase(nu).unsqueeze(-1) + s_m * atmosphere_mie_phase(nu, atm).unsqueeze(-1)
+        return s_r * rayleigh_phase(nu).unsqueeze(-1) + s_m * spectral_mie_phase(nu, atm)
     return interpolate(list(tables), idx)[0]
 
 
@@ -377,15 +377,28 @@ def _plan(ctx: _Ctx, r, mu, mu_s, nu, hits) -> tuple[Tensor, Tensor, Tensor]:
     return grids[0], grids[1], (i_nu - lo).unsqueeze(-1)
 
 
-def _sample_scattering(tables, plan) -> list[Tensor]:
-    """Quadrilinear lookups of (R, MU, MU_S, NU, C) tables at a :func:`_plan`, each (n, C)."""
-    g0, g1, f = plan
+class _Texture(NamedTuple):
+    """(R, MU, MU_S, NU, C) tables laid out once as the 3-D texture :func:`_plan` reads (2017's layout)."""
+
+    tex: Tensor  # (1, sum C, R, MU, NU MU_S)
+    channels: list[int]
+
+
+def _texture(tables) -> _Texture:
+    """The :class:`_Texture` of ``tables``: built once per stage, not per chunk (a copy of every table)."""
     R, MU, MUS, NU, _ = tables[0].shape
     tex = torch.cat([t.permute(4, 0, 1, 3, 2) for t in tables], 0).reshape(1, -1, R, MU, NU * MUS)
+    return _Texture(tex, [t.shape[-1] for t in tables])
+
+
+def _sample_scattering(texture: _Texture, plan) -> list[Tensor]:
+    """Quadrilinear lookups of (R, MU, MU_S, NU, C) tables, as their :func:`_texture`, at a :func:`_plan`, each (n, C)."""
+    g0, g1, f = plan
+    tex, channels = texture
     v0, v1 = (F.grid_sample(tex, g, mode="bilinear", padding_mode="border", align_corners=True).reshape(tex.shape[1], -1).T
               for g in (g0, g1))
     v = v0 * (1.0 - f) + v1 * f
-    return list(v.split([t.shape[-1] for t in tables], -1))
+    return list(v.split(channels, -1))
 
 
 def _geometry(ctx: _Ctx, texels: ScatteringTexels, quad: Quadrature, orders: bool = True) -> _Geometry:
@@ -496,13 +509,13 @@ def _slice_corners(plan, i: int, j: int, per: int):
     return ix[i * per : j * per], w[i * per : j * per], (j - i, *batch[1:])
 
 
-def _planned_order_radiance(ctx: _Ctx, tables, order: int, plan, nu: Tensor) -> Tensor:
-    """:func:`_order_radiance` at a precomputed :func:`_plan`, (*nu.shape, W)."""
+def _planned_order_radiance(ctx: _Ctx, tex: _Texture, order: int, plan, nu: Tensor) -> Tensor:
+    """:func:`_order_radiance` at a precomputed :func:`_plan` from the order's :func:`_texture`, (*nu.shape, W)."""
     atm = ctx.atm
     if order == 1:
-        s_r, s_m = (v.reshape(*nu.shape, -1) for v in _sample_scattering(list(tables), plan))
-        return s_r * rayleigh_phase(nu).unsqueeze(-1) + s_m * atmosphere_mie_phase(nu, atm).unsqueeze(-1)
-    return _sample_scattering(list(tables), plan)[0].reshape(*nu.shape, -1)
+        s_r, s_m = (v.reshape(*nu.shape, -1) for v in _sample_scattering(tex, plan))
+        return s_r * rayleigh_phase(nu).unsqueeze(-1) + s_m * spectral_mie_phase(nu, atm)
+    return _sample_scattering(tex, plan)[0].reshape(*nu.shape, -1)
 
 
 def _columns_sampled(ctx: _Ctx, r: Tensor, mu: Tensor) -> Tensor:
@@ -578,9 +591,10 @@ def _indirect_irradiance_table(ctx, geo: _Geometry, tables, order: int, quad: Qu
     atm, sizes = ctx.atm, ctx.sizes
     n_i, n_h = geo.irradiance_nu.shape
     n_w = atm.wavelengths.shape[0]
+    tex = _texture(tables)
 
     def fn(i: int, j: int) -> Tensor:
-        L = _planned_order_radiance(ctx, tables, order, _slice_plan(geo.irradiance_plan, i, j, n_h), geo.irradiance_nu[i:j])
+        L = _planned_order_radiance(ctx, tex, order, _slice_plan(geo.irradiance_plan, i, j, n_h), geo.irradiance_nu[i:j])
         return torch.einsum("ndw,d->nw", L, geo.irradiance_weight)
 
     step = _step(chunk_bytes, n_h * (40 * n_w + 40), torch.finfo(atm.dtype).bits // 8)
@@ -627,6 +641,8 @@ def _mie_phase_parts(atm: Atmosphere):
     :func:`atmosphere_mie_phase` itself (k = 1).
     """
     g, name = atm.mie_g, atm.mie_phase
+    if name == "lognormal_mie":  # per wavelength: (..., W), contracted with einsum by the caller
+        return (lambda c: spectral_mie_phase(c, atm)), 1.0
     if g.dim() or name not in ("cornette_shanks", "henyey_greenstein"):
         return (lambda c: atmosphere_mie_phase(c, atm)), 1.0
     # q = a + b (1 + sgn c): (1 - g)^2 + 2 g (1 - c) for g >= 0, (1 + g)^2 - 2 g (1 + c) for g < 0,
@@ -682,8 +698,10 @@ def _scattering_density_table(
     block = max(1, _PHASE_BLOCK // (n_v * n_d))  # groups per phase block
     sub_v = n_v if _PHASE_BLOCK >= n_v * n_d else max(1, _PHASE_BLOCK // n_d)
 
+    tex = _texture(prev_tables)
+
     def fn(i: int, j: int) -> Tensor:
-        L = _planned_order_radiance(ctx, prev_tables, order - 1, _slice_plan(geo.density_plan, i, j, n_d), geo.density_nu[i:j])
+        L = _planned_order_radiance(ctx, tex, order - 1, _slice_plan(geo.density_plan, i, j, n_d), geo.density_nu[i:j])
         e_g = interpolate_planned([prev_irradiance], *_slice_corners(geo.ground_plan, i, j, n_d))[0]
         L = L + ground[i:j] * e_g  # (G, D, W)
         v = geo.views[i:j]  # (G, V, 3)
@@ -699,7 +717,8 @@ def _scattering_density_table(
             for c in range(0, n_v, sub_v):
                 e = min(c + sub_v, n_v)
                 cosang = torch.clamp(torch.matmul(v[a:b, c:e], om.T), -1.0, 1.0)  # (g, v, D)
-                rows.append(torch.bmm(phase(cosang), Ld[a:b]))
+                pc = phase(cosang)  # (g, v, D), or (g, v, D, W) for a phase per wavelength
+                rows.append(torch.bmm(pc, Ld[a:b]) if pc.dim() == 3 else torch.einsum("gvdw,gdw->gvw", pc, Ld[a:b]))
             parts.append(torch.cat(rows, 1) if len(rows) > 1 else rows[0])
         j_m = (torch.cat(parts, 0) if len(parts) > 1 else parts[0]) * k_m
         dens = profile_densities(r_g[i:j] - atm.bottom_radius, atm, ozone=False)  # (G, 2)
@@ -982,7 +1001,7 @@ def sky_radiance(
         hits = ray_hits_ground(rr, mm, Rb) & valid[i:j]
         idx = _scat_index(ctx, rr, mm, ss, nn, hits)
         vals = interpolate([tables.single_rayleigh, tables.single_mie] + mult, idx)
-        out = vals[0] * rayleigh_phase(nn).unsqueeze(-1) + vals[1] * atmosphere_mie_phase(nn, atm).unsqueeze(-1)
+        out = vals[0] * rayleigh_phase(nn).unsqueeze(-1) + vals[1] * spectral_mie_phase(nn, atm)
         for v in vals[2:]:
             out = out + v
         ext = extinction_matrix3(atm)
