@@ -11,6 +11,10 @@ Config layout (all SI; see configs/earth.yaml for a commented example)::
          # phase: two_term_hg adds g2 (backward lobe, in (-1, 1)) and hg_weight (f of the forward lobe g,
          # in (0, 1]); profile: boundary_layer adds mixing_height_m (docs/aerosol.md). With the boundary
          # layer, angstrom_beta is still the optical depth at 1 um: extinction = beta / (h_mix + H_M).
+         # phase: lognormal_mie takes median_radius_um, geometric_sigma and refractive_index [n, k] (m = n + ik) and
+         # derives the extinction's spectral shape, the single-scattering albedo and the phase from them (Mie theory,
+         # skyfit/atmosphere/mie.py); extinction_550 or angstrom_beta still set the amount; angstrom_alpha,
+         # single_scattering_albedo and g are refused with it.
     ozone: {column_du: 300, layer_m: [10000, 25000, 40000], cross_section: ozone_cross_section_233K}
     ground: {albedo: 0.1}      # or {table: grass_albedo}
     sun: {distance_au: 1.0}
@@ -29,6 +33,7 @@ import numpy as np
 import torch
 
 from . import constants as C
+from .mie import check_refractive_index, lognormal_mie_optics
 from .params import Atmosphere, angstrom_extinction, rayleigh_power_law
 from .solar import solar_irradiance
 
@@ -81,7 +86,7 @@ SECTION_KEYS: dict[str, frozenset[str]] = {
     "rayleigh": frozenset({"coefficient", "exponent", "scale_height_m", "table", "scale"}),
     "mie": frozenset({
         "angstrom_alpha", "angstrom_beta", "extinction_550", "single_scattering_albedo", "scale_height_m", "g", "phase",
-        "g2", "hg_weight", "profile", "mixing_height_m",
+        "g2", "hg_weight", "profile", "mixing_height_m", "median_radius_um", "geometric_sigma", "refractive_index",
     }),
     "ozone": frozenset({"column_du", "layer_m", "cross_section"}),
     "ground": frozenset({"albedo", "table"}),
@@ -199,6 +204,7 @@ def atmosphere_from_config(
         weight = _get(mie, "hg_weight", None, "mie")
     elif "g2" in mie or "hg_weight" in mie:
         raise ConfigError(f"mie.g2 and mie.hg_weight belong to phase: two_term_hg, not {phase!r}")
+    lognormal = _lognormal_section(mie, phase, lam)
     profile = str(mie.get("profile", "exponential"))
     h_mix = None
     if profile == "boundary_layer":
@@ -209,7 +215,14 @@ def atmosphere_from_config(
         raise ConfigError(f"mie.mixing_height_m belongs to profile: boundary_layer, not {profile!r}")
     # the aerosol's vertical column int rho dh: AOD = extinction x this (H_M, or h_mix + H_M for the boundary layer)
     column_m = h_m if h_mix is None else h_mix + h_m
-    if "extinction_550" in mie:
+    if lognormal is not None:  # the size distribution's spectral shape: C_ext(lambda) / C_ext(550 or 1000 nm)
+        shape = lognormal["extinction"][: lam.size]
+        if "extinction_550" in mie:
+            ext_m = _nonneg(_get(mie, "extinction_550", None, "mie"), "mie.extinction_550") * shape / lognormal["extinction"][-2]
+        else:
+            beta = _get(mie, "angstrom_beta", C.MIE_EXTINCTION_PER_M * C.MIE_SCALE_HEIGHT_M, "mie")
+            ext_m = _nonneg(beta, "mie.angstrom_beta") / column_m * shape / lognormal["extinction"][-1]
+    elif "extinction_550" in mie:
         ext_550 = _nonneg(_get(mie, "extinction_550", None, "mie"), "mie.extinction_550")
         ext_m = ext_550 * (lam / 550.0) ** (-_get(mie, "angstrom_alpha", 0.0, "mie"))
     else:
@@ -219,6 +232,8 @@ def atmosphere_from_config(
     if not 0 <= ssa <= 1:
         raise ConfigError(f"mie.single_scattering_albedo must be in [0, 1], got {ssa}")
     g = _get(mie, "g", C.MIE_G, "mie")
+    if lognormal is not None:  # per wavelength, and g at 550 nm (for reports and the one-lobe exports)
+        ssa, g = lognormal["ssa"][: lam.size], float(lognormal["asymmetry"][-2])
 
     if "table" in gnd:
         albedo = table(gnd["table"], lam)
@@ -280,10 +295,49 @@ def atmosphere_from_config(
             mie_hg_weight=None if weight is None else T(weight),
             mie_profile=profile,
             mie_mixing_height=None if h_mix is None else T(h_mix),
+            mie_median_radius=None if lognormal is None else T(lognormal["median_radius_m"]),
+            mie_geometric_sigma=None if lognormal is None else T(lognormal["geometric_sigma"]),
+            mie_refractive_index=None if lognormal is None else lognormal["refractive_index"],
             config=copy.deepcopy(cfg),
         )
     except ValueError as e:
         raise ConfigError(str(e)) from None
+
+
+LOGNORMAL_KEYS = ("median_radius_um", "geometric_sigma", "refractive_index")
+"""Keys of the ``mie`` section that belong to ``phase: lognormal_mie`` (all three required there)."""
+LOGNORMAL_DERIVED_KEYS = ("angstrom_alpha", "single_scattering_albedo", "g")
+"""Keys the lognormal_mie phase derives from the size distribution and refuses."""
+
+
+def _lognormal_section(mie: dict, phase: str, lam: np.ndarray) -> dict | None:
+    """The lognormal_mie optics on ``lam`` + [550, 1000] nm (float64 numpy) and the section's values, or None
+    for another phase; ConfigError for a key that does not belong or a value out of range."""
+    present = [k for k in LOGNORMAL_KEYS if k in mie]
+    if phase != "lognormal_mie":
+        if present:
+            raise ConfigError(f"mie.{', mie.'.join(present)} belong to phase: lognormal_mie, not {phase!r}")
+        return None
+    derived = [k for k in LOGNORMAL_DERIVED_KEYS if k in mie]
+    if derived:
+        raise ConfigError(f"mie.{', mie.'.join(derived)}: phase lognormal_mie derives the Angstrom exponent, "
+                          "single-scattering albedo and asymmetry from median_radius_um, geometric_sigma and "
+                          "refractive_index; remove them")
+    r_um = _get(mie, "median_radius_um", None, "mie")
+    sigma = _get(mie, "geometric_sigma", None, "mie")
+    raw = mie.get("refractive_index")
+    if not isinstance(raw, (list, tuple)) or len(raw) != 2:
+        raise ConfigError(f"mie.refractive_index must be [real, imaginary] (m = n + ik), got {raw!r}")
+    try:
+        index = check_refractive_index(raw)
+        r = torch.tensor(r_um * 1e-6, dtype=torch.float64)
+        optics = lognormal_mie_optics(torch.as_tensor(np.concatenate([lam, [550.0, 1000.0]]), dtype=torch.float64),
+                                      r, torch.tensor(sigma, dtype=torch.float64), index)
+    except ValueError as e:
+        raise ConfigError(f"mie (phase lognormal_mie): {e}") from None
+    with torch.no_grad():
+        return {"extinction": optics.extinction.numpy(), "ssa": optics.ssa.numpy(), "asymmetry": optics.asymmetry.numpy(),
+                "median_radius_m": r_um * 1e-6, "geometric_sigma": sigma, "refractive_index": index}
 
 
 SHIPPED_CONFIGS = Path(__file__).resolve().parents[1] / "configs"

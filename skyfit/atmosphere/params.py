@@ -13,9 +13,11 @@ import torch
 from torch import Tensor
 
 from . import constants as C
+from .mie import GEOMETRIC_SIGMA_RANGE, MEDIAN_RADIUS_RANGE_M, WAVELENGTH_RANGE_NM, check_refractive_index
 
-MIE_PHASES = ("cornette_shanks", "henyey_greenstein", "two_term_hg")
-"""Aerosol phase functions by name (:func:`skyfit.scattering.phase.mie_phase`)."""
+MIE_PHASES = ("cornette_shanks", "henyey_greenstein", "two_term_hg", "lognormal_mie")
+"""Aerosol phase functions by name (:func:`skyfit.scattering.phase.mie_phase`; ``lognormal_mie``, per wavelength:
+:func:`skyfit.scattering.phase.lognormal_mie_phase`)."""
 MIE_PROFILES = ("exponential", "boundary_layer")
 """Aerosol density profiles by name (:mod:`skyfit.atmosphere.profiles`): exp(-h / H_M), or 1 up to the
 mixing height h_mix and exp(-(h - h_mix) / H_M) above."""
@@ -48,6 +50,12 @@ class Atmosphere:
         mie_profile: one of MIE_PROFILES.
         mie_mixing_height: top h_mix of the well-mixed aerosol layer, shape (); required (and only
             used) when ``mie_profile == "boundary_layer"``. [m]
+        mie_median_radius: median radius r_g of the log-normal number distribution of aerosol spheres, shape ();
+            required (and only used) when ``mie_phase == "lognormal_mie"`` (:mod:`skyfit.atmosphere.mie`); the
+            phase then comes from it, and ``mie_extinction`` / ``mie_scattering`` / ``mie_g`` should be the
+            distribution's (the config and the fit set them so). [m]
+        mie_geometric_sigma: geometric standard deviation sigma_g in (1, 4] of that distribution, shape (). [1]
+        mie_refractive_index: (n, k) of the spheres' refractive index m = n + ik, k >= 0; with ``lognormal_mie``. [1]
     """
 
     wavelengths: Tensor
@@ -70,6 +78,9 @@ class Atmosphere:
     mie_hg_weight: Tensor | None = None
     mie_profile: str = "exponential"
     mie_mixing_height: Tensor | None = None
+    mie_median_radius: Tensor | None = None
+    mie_geometric_sigma: Tensor | None = None
+    mie_refractive_index: tuple[float, float] | None = None
     config: dict | None = dataclasses.field(default=None, repr=False, compare=False)
     """The config this atmosphere was built from (None when built by hand); :func:`skyfit.fit` rebuilds it on
     the data's wavelengths, after checking that the atmosphere still equals it."""
@@ -130,6 +141,8 @@ class Atmosphere:
                 ok = bool(torch.isfinite(v).all()) and bool((v > lo).all()) and bool((v <= hi if closed else v < hi).all())
                 if not ok:
                     raise ValueError(f"{name} must be in ({lo:g}, {hi:g}{']' if closed else ')'}, got {v.detach().cpu().numpy()}")
+        if self.mie_phase == "lognormal_mie":
+            self._validate_lognormal()
         if self.mie_profile not in MIE_PROFILES:
             raise ValueError(f"mie_profile must be one of {MIE_PROFILES}, got {self.mie_profile!r}")
         if self.mie_profile == "boundary_layer":
@@ -146,6 +159,23 @@ class Atmosphere:
             raise ValueError(f"ozone_layer_m must satisfy 0 <= bottom < peak < top, got {self.ozone_layer_m}")
         if not (0 < self.sun_angular_radius < 0.1):
             raise ValueError(f"sun_angular_radius must be in (0, 0.1) rad, got {self.sun_angular_radius}")
+
+    def _validate_lognormal(self) -> None:
+        for name, (lo, hi), open_lo in (("mie_median_radius", MEDIAN_RADIUS_RANGE_M, False),
+                                        ("mie_geometric_sigma", GEOMETRIC_SIGMA_RANGE, True)):
+            v = getattr(self, name)
+            if not isinstance(v, Tensor) or v.numel() != 1:
+                raise ValueError(f"mie_phase lognormal_mie needs {name} as a scalar tensor, got {v!r}")
+            x = float(v.detach())
+            if not (math.isfinite(x) and (lo < x if open_lo else lo <= x) and x <= hi):
+                raise ValueError(f"{name} must be in {'(' if open_lo else '['}{lo:g}, {hi:g}], got {x:g}")
+        if self.mie_refractive_index is None:
+            raise ValueError("mie_phase lognormal_mie needs mie_refractive_index (n, k)")
+        self.mie_refractive_index = check_refractive_index(self.mie_refractive_index)
+        lam = self.wavelengths
+        if float(lam.min()) < WAVELENGTH_RANGE_NM[0] or float(lam.max()) > WAVELENGTH_RANGE_NM[1]:
+            raise ValueError(f"mie_phase lognormal_mie covers {WAVELENGTH_RANGE_NM[0]:g}-{WAVELENGTH_RANGE_NM[1]:g} nm, "
+                             f"got wavelengths {float(lam.min()):g}-{float(lam.max()):g} nm")
 
     # -- conveniences -----------------------------------------------------
     @property

@@ -141,7 +141,13 @@ def _lut_json(tables: PrecomputedAtmosphere, atm: Atmosphere, fmt: str, rgb: boo
         "phase": {"rayleigh": "3 / (16 pi) (1 + nu^2)", "mie": atm.mie_phase, "mie_g": float(atm.mie_g),
                   **({"mie_g2": float(atm.mie_g2), "mie_hg_weight": float(atm.mie_hg_weight),
                       "mie_formula": "f HG(mie_g) + (1 - f) HG(mie_g2), f = mie_hg_weight"}
-                     if atm.mie_phase == "two_term_hg" else {})},
+                     if atm.mie_phase == "two_term_hg" else {}),
+                  **({"mie_median_radius_m": float(atm.mie_median_radius), "mie_geometric_sigma": float(atm.mie_geometric_sigma),
+                      "mie_refractive_index": list(atm.mie_refractive_index),
+                      "mie_formula": "per wavelength: the Mie phase of a log-normal size distribution "
+                                     "(skyfit.scattering.lognormal_mie_phase; docs/aerosol.md); mie_g is its asymmetry "
+                                     "at 550 nm, and an RGB channel has no single phase"}
+                     if atm.mie_phase == "lognormal_mie" else {})},
         "mie_profile": {"name": atm.mie_profile,
                         **({"mixing_height_m": float(atm.mie_mixing_height),
                             "density": "1 for h <= mixing_height_m, exp(-(h - mixing_height_m) / mie_scale_height) above"}
@@ -275,8 +281,8 @@ def _atmosphere_from_summary(d: dict, dtype, device) -> Atmosphere:
     for k, v in d.items():
         if k in ("bottom_radius", "top_radius", "sun_angular_radius"):
             kw[k] = float(v)
-        elif k == "ozone_layer_m":
-            kw[k] = tuple(float(x) for x in v)
+        elif k in ("ozone_layer_m", "mie_refractive_index"):
+            kw[k] = None if v is None else tuple(float(x) for x in v)
         elif k in ("mie_phase", "mie_profile", "name"):
             kw[k] = v
         else:

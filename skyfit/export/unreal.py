@@ -88,7 +88,9 @@ def unreal_parameters(atm_rgb: Atmosphere) -> dict:
     mg = float(atm_rgb.mie_g)
     if atm_rgb.mie_phase != "henyey_greenstein":
         notes.append(f"Mie phase {atm_rgb.mie_phase}: Unreal evaluates Henyey-Greenstein with the same g"
-                     + (" (the forward lobe g1; the backward lobe is dropped)" if atm_rgb.mie_phase == "two_term_hg" else ""))
+                     + (" (the forward lobe g1; the backward lobe is dropped)" if atm_rgb.mie_phase == "two_term_hg" else "")
+                     + (" (the log-normal size distribution's asymmetry at 550 nm; its per-wavelength phase, Angstrom "
+                        "exponent and albedo are sampled at the three channels)" if atm_rgb.mie_phase == "lognormal_mie" else ""))
     if atm_rgb.mie_profile != "exponential":
         notes.append(f"Mie profile {atm_rgb.mie_profile} (mixing height {float(atm_rgb.mie_mixing_height):g} m): "
                      "Unreal's aerosol is exponential from the ground with the same scale height")

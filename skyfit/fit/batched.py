@@ -28,7 +28,7 @@ equals the per-walker one to rounding (tests/test_sample.py checks 1e-10).
 Supported: single scattering (orders 1) with the ``chapman`` or a quadrature
 (``gauss``, ``trapezoid``, ``midpoint``, ``simpson``) optical-depth integrator, and
 fixed sun offsets (they move the geometry), with the one-lobed Mie phases and the exponential
-aerosol profile (not ``two_term_hg`` nor ``boundary_layer``, docs/aerosol.md). Anything else: :meth:`BatchedLikelihood.supported`
+aerosol profile (not ``two_term_hg``, ``lognormal_mie`` nor ``boundary_layer``, docs/aerosol.md). Anything else: :meth:`BatchedLikelihood.supported`
 says why, and :class:`~skyfit.fit.sample.LogPosterior` loops over the walkers instead.
 
 ``torch.func.vmap`` over :meth:`FitProblem.objective` is not an option: the objective
@@ -131,6 +131,8 @@ class BatchedLikelihood:
         touched = free | set(problem.param._overridden)
         if problem.param.base.mie_phase == "two_term_hg" or touched & {"mie_g2", "mie_hg_weight"}:
             return "the two-term Henyey-Greenstein phase (the batched Mie phase is one-lobed)"
+        if problem.param.lognormal_mie():
+            return "the lognormal_mie phase (the batched Mie phase is one Henyey-Greenstein lobe for every wavelength)"
         if problem.param.boundary_layer():
             return "the boundary-layer aerosol profile (the batched columns are exponential)"
         if free & set(ORIENTATION):

@@ -34,6 +34,7 @@ from torch import Tensor
 from ..atmosphere import Atmosphere
 from ..atmosphere.config import spectral_tables
 from ..atmosphere.constants import DOBSON_UNIT_PER_M2
+from ..atmosphere.mie import effective_radius, effective_variance, lognormal_mie_optics
 
 
 class FitError(ValueError):
@@ -144,6 +145,11 @@ PARAMETERS: dict[str, ParameterSpec] = {
         ParameterSpec("mie_mixing_height", "m", "loginterval", 1.0, 10.0, 5000.0, (200.0, 2000.0), prior="loguniform",
                       description="aerosol boundary-layer top: density 1 below, exp(-(h - h_mix) / H_M) above "
                                   "(makes the profile boundary_layer)"),
+        ParameterSpec("mie_median_radius", "m", "loginterval", 1.0, 0.01e-6, 2e-6, (0.05e-6, 0.3e-6), prior="loguniform",
+                      description="median radius r_g of the aerosol's log-normal number distribution (makes the phase "
+                                  "lognormal_mie: Mie extinction spectrum, single-scattering albedo and phase)"),
+        ParameterSpec("mie_geometric_sigma", "1", "loginterval", 1.0, 1.05, 3.0, (1.4, 2.2), prior="loguniform",
+                      description="geometric standard deviation sigma_g of that distribution (makes the phase lognormal_mie)"),
         ParameterSpec("ground_albedo", "1", "interval", 1.0, 0.0, 1.0, (0.05, 0.35), prior="uniform",
                       description="grey Lambertian ground albedo (replaces the config's spectrum)"),
         ParameterSpec("ground_albedo_scale", "1", "interval", 1.0, 0.0, math.inf, (0.6, 1.4),
@@ -192,6 +198,19 @@ MIE_G2_DEFAULT: float = -0.3
 phase functions of haze have g2 of -0.2 to -0.6)."""
 MIE_HG_WEIGHT_DEFAULT: float = 0.9
 """Start of mie_hg_weight when the config's phase is single-lobed [1]: mostly the forward lobe (close to the config's HG)."""
+LOGNORMAL_MIE: tuple[str, ...] = ("mie_median_radius", "mie_geometric_sigma")
+"""Parameters of the lognormal_mie phase: free or set, they make the phase ``lognormal_mie`` (skyfit/atmosphere/mie.py)."""
+LOGNORMAL_DERIVED: tuple[str, ...] = ("mie_g", "mie_angstrom_alpha", "mie_ssa", "mie_g2", "mie_hg_weight")
+"""Parameters the lognormal_mie phase derives from the size distribution and the refractive index: refused with it."""
+MIE_MEDIAN_RADIUS_DEFAULT: float = 0.1e-6
+"""Start of mie_median_radius when the config's phase is another [m]: about the number median of the fine mode that
+AERONET retrieves (volume median radii 0.12-0.2 um with ln sigma_g 0.38-0.5; Dubovik et al. 2002, J. Atmos. Sci. 59,
+590, Table 1; number median = volume median x exp(-3 ln^2 sigma_g))."""
+MIE_GEOMETRIC_SIGMA_DEFAULT: float = 1.6
+"""Start of mie_geometric_sigma when the config's phase is another [1]: exp(0.47), the same fine mode."""
+MIE_REFRACTIVE_INDEX_DEFAULT: tuple[float, float] = (1.45, 0.005)
+"""Refractive index (n, k) of the lognormal_mie phase when the config's phase is another [1]: within the range
+AERONET retrieves at 440-1020 nm (n 1.39-1.56, k 0-0.02 across its aerosol types; Dubovik et al. 2002, Table 1)."""
 MIE_MIXING_HEIGHT_DEFAULT: float = 200.0
 """Start of mie_mixing_height when the config's aerosol is exponential [m]: a shallow layer, close to that profile
 (h_mix -> 0 is the exponential)."""
@@ -344,6 +363,10 @@ class Parameterisation:
             "mie_hg_weight": float(base.mie_hg_weight) if base.mie_hg_weight is not None else MIE_HG_WEIGHT_DEFAULT,
             "mie_mixing_height": (float(base.mie_mixing_height) if base.mie_mixing_height is not None
                                   else MIE_MIXING_HEIGHT_DEFAULT),
+            "mie_median_radius": (float(base.mie_median_radius) if base.mie_median_radius is not None
+                                  else MIE_MEDIAN_RADIUS_DEFAULT),
+            "mie_geometric_sigma": (float(base.mie_geometric_sigma) if base.mie_geometric_sigma is not None
+                                    else MIE_GEOMETRIC_SIGMA_DEFAULT),
             "ground_albedo": float(base.ground_albedo.mean()),
             "ground_albedo_scale": 1.0,
             "ozone_column": self._ozone_du if self._ozone_du is not None and self._ozone_du > 0 else 0.0,
@@ -353,6 +376,24 @@ class Parameterisation:
         self._overridden: set[str] = set()  # atmosphere parameters set away from the base (fixed overrides count)
         for name, v in (values or {}).items():
             self.set_value(name, v)
+        self._refractive_index = base.mie_refractive_index or MIE_REFRACTIVE_INDEX_DEFAULT
+        if self.lognormal_mie():
+            derived = [n for n in LOGNORMAL_DERIVED if n in set(self.free) | self._overridden]
+            if derived:
+                raise FitError(f"{', '.join(derived)} (free or set): the lognormal_mie phase derives the asymmetry, "
+                               "Angstrom exponent and single-scattering albedo from the size distribution and the "
+                               "refractive index; free mie_median_radius, mie_geometric_sigma instead, or set mie.phase "
+                               "to henyey_greenstein")
+            if base.mie_phase == "lognormal_mie" and bool((base.mie_extinction > 0).all()):
+                # mie_beta_550 is the extinction at 550 nm itself (the spectrum is no power law)
+                with torch.no_grad():
+                    shape = self._lognormal_optics(base.mie_median_radius, base.mie_geometric_sigma)[0]
+                b550 = float((base.mie_extinction / shape).mean())
+                self.defaults["mie_beta_550"] = b550
+                self.defaults["mie_aod_550"] = b550 * float(base.mie_column_height)
+                for n in ("mie_beta_550", "mie_aod_550"):
+                    if n not in self._overridden:
+                        self.values[n] = self.defaults[n]
         two_term = (set(self.free) | self._overridden) & set(TWO_TERM_HG)
         if two_term and base.mie_phase == "cornette_shanks":
             raise FitError(f"{', '.join(sorted(two_term))} (free or set) describe the two-term Henyey-Greenstein "
@@ -448,7 +489,8 @@ class Parameterisation:
                 t = t.detach().cpu()
                 # per-observation values as lists (one per observation); a single observation's as a number
                 out[n] = t.tolist() if t.ndim and self.n_observations > 1 else float(t.reshape(-1)[0]) if t.ndim else float(t)
-            out.update(self.derived(phys))  # mie_beta_550 and mie_aod_550 consistent with the scale height
+            # mie_beta_550 and mie_aod_550 consistent with the scale height (and the lognormal_mie phase's g, alpha, ssa)
+            out.update({n: v for n, v in self.derived(phys).items() if n in PARAMETERS})
         return out
 
     def free_dict(self, x: Tensor) -> dict[str, float | list[float]]:
@@ -482,7 +524,14 @@ class Parameterisation:
         if "mie_mixing_height" in touched:  # the profile becomes a boundary layer
             kw["mie_profile"] = "boundary_layer"
             kw["mie_mixing_height"] = T(phys["mie_mixing_height"]).reshape(())
-        if touched & {"mie_beta_550", "mie_aod_550", "mie_angstrom_alpha", "mie_ssa"}:
+        if self.lognormal_mie(touched) and touched & {*LOGNORMAL_MIE, "mie_beta_550", "mie_aod_550"}:
+            # the size distribution's spectrum: beta_550 C_ext(lambda) / C_ext(550), albedo C_sca / C_ext, its phase
+            rg, sg = T(phys["mie_median_radius"]).reshape(()), T(phys["mie_geometric_sigma"]).reshape(())
+            shape, ssa, g550 = self._lognormal_optics(rg, sg)
+            ext = self._beta_550(phys, touched) * shape
+            kw.update(mie_extinction=ext, mie_scattering=ext * ssa, mie_g=g550, mie_phase="lognormal_mie",
+                      mie_median_radius=rg, mie_geometric_sigma=sg, mie_refractive_index=self._refractive_index)
+        elif touched & {"mie_beta_550", "mie_aod_550", "mie_angstrom_alpha", "mie_ssa"}:
             ext = b.mie_extinction
             if touched & {"mie_beta_550", "mie_aod_550", "mie_angstrom_alpha"}:
                 beta = self._beta_550(phys, touched)
@@ -505,6 +554,19 @@ class Parameterisation:
             return b.replace(**kw)
         except ValueError as e:  # cannot happen inside the transforms' ranges; name it if it does
             raise FitError(f"parameters give an invalid atmosphere: {e}") from None
+
+    def lognormal_mie(self, touched: set[str] | None = None) -> bool:
+        """True when the aerosol phase is lognormal_mie (the config's, or mie_median_radius / mie_geometric_sigma
+        free or set)."""
+        touched = set(self.free) | self._overridden if touched is None else touched
+        return self.base.mie_phase == "lognormal_mie" or bool(touched & set(LOGNORMAL_MIE))
+
+    def _lognormal_optics(self, median_radius: Tensor, geometric_sigma: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(C_ext(lambda) / C_ext(550 nm), single-scattering albedo (W,), asymmetry at 550 nm ()) of the size
+        distribution on the model wavelengths (:func:`skyfit.atmosphere.mie.lognormal_mie_optics`)."""
+        lam = torch.cat([self._lam, self._lam.new_tensor([550.0])])
+        o = lognormal_mie_optics(lam, median_radius, geometric_sigma, self._refractive_index)
+        return o.extinction[:-1] / o.extinction[-1], o.ssa[:-1], o.asymmetry[-1]
 
     def boundary_layer(self, touched: set[str] | None = None) -> bool:
         """True when the aerosol has the boundary-layer profile (the config's, or ``mie_mixing_height`` free or set)."""
@@ -531,7 +593,24 @@ class Parameterisation:
         (AOD = beta_550 H_M; beta_550 (h_mix + H_M) for the boundary layer)."""
         with torch.no_grad():
             beta = self._beta_550(phys)
-            return {"mie_aod_550": float(beta * self._column_height(phys)), "mie_beta_550": float(beta)}
+            out = {"mie_aod_550": float(beta * self._column_height(phys)), "mie_beta_550": float(beta)}
+            if self.lognormal_mie():
+                out.update(self.lognormal_derived(phys))
+            return out
+
+    def lognormal_derived(self, phys: Mapping[str, Tensor]) -> dict[str, float]:
+        """What the lognormal_mie size distribution implies (floats, for reports): the Angstrom exponent between 440
+        and 870 nm (AERONET's pair) -ln(C_ext(440) / C_ext(870)) / ln(440 / 870), the asymmetry and single-scattering
+        albedo at 550 nm, the effective radius r_g exp(5/2 ln^2 sigma_g) [m] and variance exp(ln^2 sigma_g) - 1
+        (Hansen & Travis 1974, eqs. 2.53-2.54). Those with parameter names replace the config's values in reports."""
+        with torch.no_grad():
+            rg, sg = phys["mie_median_radius"].reshape(()), phys["mie_geometric_sigma"].reshape(())
+            lam = torch.tensor([440.0, 550.0, 870.0], dtype=torch.float64)
+            o = lognormal_mie_optics(lam, rg.double().cpu(), sg.double().cpu(), self._refractive_index)
+            alpha = -math.log(float(o.extinction[0] / o.extinction[2])) / math.log(440.0 / 870.0)
+            return {"mie_angstrom_alpha": alpha, "mie_g": float(o.asymmetry[1]), "mie_ssa": float(o.ssa[1]),
+                    "mie_effective_radius": effective_radius(float(rg), float(sg)),
+                    "mie_effective_variance": effective_variance(float(sg))}
 
     def nuisance(self, phys: Mapping[str, Tensor], i: int) -> dict[str, Tensor]:
         """Observation ``i``'s nuisance values (shape ()) from :meth:`to_physical`'s dict."""

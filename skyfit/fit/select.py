@@ -13,6 +13,9 @@ rung               what changes                                           parame
 ``ground_albedo``  + a fitted grey ground albedo                          ground_albedo
 ``scale_heights``  free instead of fixed scale heights                    rayleigh_scale_height, mie_scale_height
 ``two_term_hg``    + a backward lobe: f HG(g1) + (1 - f) HG(g2)           mie_g2, mie_hg_weight
+``lognormal_mie``  phase, spectrum and albedo of a log-normal Mie aerosol  mie_median_radius, mie_geometric_sigma
+                   instead of g and the Angstrom exponent                 (fixes mie_g, mie_angstrom_alpha, mie_g2,
+                                                                          mie_hg_weight: derived)
 ``boundary_layer`` + aerosol density 1 up to h_mix, exponential above     mie_mixing_height
 ``height_fog``     flat-Earth height-fog optical depth (Ishiyama 2018)    -- (only where the scene qualifies)
 =================  =====================================================  ===========================================
@@ -27,7 +30,10 @@ is removed in turn while that does not raise BIC by 2 or more (a component taken
 stand-in for a later one is dropped again). Every rung is nested in the rungs built on it
 (Mie off is beta_M = 0, ozone off is a zero column, single scattering is the multiple term
 switched off; the two-term phase is the single lobe at f -> 1 and the boundary layer the exponential
-at h_mix -> 0, limits of their open ranges). The chosen model is the last accepted one: the lowest BIC, unless a bigger
+at h_mix -> 0, limits of their open ranges). ``lognormal_mie`` is the one rung that is not nested: it
+replaces g and alpha (and a two-term lobe) by the two parameters of the size distribution, from which
+Mie theory derives them (Rung ``drops``), so it is compared with the best model so far at equal or
+smaller k, by the same BIC margin. The chosen model is the last accepted one: the lowest BIC, unless a bigger
 model is lower by less than 2.
 
 Criterion (Schwarz 1978)::
@@ -78,7 +84,7 @@ from .data import Observation
 from .losses import Loss
 from .model import FitProblem, SkyModel
 from .optimise import FitOptions, OptimiseResult, fit
-from .parameters import NUISANCE, ORIENTATION, PARAMETERS, FitError, Parameterisation
+from .parameters import LOGNORMAL_DERIVED, LOGNORMAL_MIE, NUISANCE, ORIENTATION, PARAMETERS, FitError, Parameterisation
 from .problem import atmosphere_config, fit_settings, initial_values, prepare
 from .results import check_result_path, write_result
 
@@ -103,12 +109,14 @@ class Rung:
             ``mie_*`` names while the aerosol is off).
         changes: model state the rung sets: ``mie`` / ``ozone`` (bool: component on),
             ``orders`` (SkyModel orders), ``integrator`` (optical-depth integrator name).
+        drops: parameters the rung fixes again because its component derives them (lognormal_mie: g, alpha).
     """
 
     name: str
     adds: str
     free: tuple[str, ...] = ()
     changes: Mapping[str, object] = dataclasses.field(default_factory=dict)
+    drops: tuple[str, ...] = ()
 
 
 RUNGS: tuple[Rung, ...] = (
@@ -123,6 +131,9 @@ RUNGS: tuple[Rung, ...] = (
          ("rayleigh_scale_height", "mie_scale_height")),
     Rung("two_term_hg", "+ a backward lobe of the aerosol phase: two-term Henyey-Greenstein (g1 = mie_g)",
          ("mie_g2", "mie_hg_weight")),
+    Rung("lognormal_mie", "aerosol phase, Angstrom exponent and albedo from a log-normal size distribution (Mie theory) "
+         "instead of fitted g and alpha", ("mie_median_radius", "mie_geometric_sigma"),
+         drops=("mie_g", "mie_angstrom_alpha", "mie_g2", "mie_hg_weight")),
     Rung("boundary_layer", "+ a well-mixed aerosol layer: density 1 up to a mixing height, exponential above",
          ("mie_mixing_height",)),
     Rung("height_fog", "flat-Earth height-fog optical depth (Ishiyama 2018), short-range scenes only", (),
@@ -309,6 +320,9 @@ class Ladder:
             kw["mie_scattering"] = torch.zeros_like(atm.mie_scattering)
         if not st.ozone:
             kw["ozone_absorption"] = None
+        if atm.mie_phase == "lognormal_mie" and not set(st.free) & set(LOGNORMAL_MIE):
+            # below the lognormal_mie rung g and alpha are fitted: Henyey-Greenstein with the distribution's g (550 nm)
+            kw["mie_phase"] = "henyey_greenstein"
         return atm.replace(**kw) if kw else atm
 
     def model_for(self, st: _State) -> SkyModel:
@@ -322,6 +336,8 @@ class Ladder:
     def _param(self, st: _State, values: Mapping) -> Parameterisation:
         base = self.base_for(st)
         init = {n: v for n, v in self.initial.items() if st.mie or not n.startswith("mie_")}
+        if set(st.free) & set(LOGNORMAL_MIE):  # the size distribution derives these
+            init = {n: v for n, v in init.items() if n not in LOGNORMAL_DERIVED}
         if st.mie and "mie_aod_550" in st.free and "mie_aod_550" not in init and "mie_beta_550" not in init:
             if not float(base.mie_extinction.max()) > 0:  # a config without aerosol: start from AOD 0.1
                 base = self.atmosphere.replace(mie_extinction=torch.full_like(base.mie_extinction, 0.1 / float(base.mie_scale_height)),
@@ -341,7 +357,8 @@ class Ladder:
                                  orders=int(ch.get("orders", parent.orders)),
                                  integrator=ch.get("integrator", parent.integrator))  # type: ignore[arg-type]
         added = [n for n in rung.free if n in PARAMETERS and n not in parent.free and (st.mie or not n.startswith("mie_"))]
-        st.free = tuple(parent.free) + tuple(added)
+        kept = parent.free if not added else tuple(n for n in parent.free if n not in rung.drops)
+        st.free = tuple(kept) + tuple(added)
         st.applied = tuple(parent.applied) + (rung.name,)
         return st, added
 

@@ -45,7 +45,7 @@ from .multiple import (
     _view_groups,
     transmittance_columns_table,
 )
-from .phase import atmosphere_mie_phase, rayleigh_phase
+from .phase import rayleigh_phase, spectral_mie_phase
 from .single import sun_visible_fraction
 
 
@@ -175,7 +175,8 @@ def _scattering_density_table(
         cosang = torch.clamp(cosang, -1.0, 1.0)
         dens = profile_densities(rr[:, 0] - atm.bottom_radius, atm, ozone=False)  # (G, 2)
         j_r = torch.bmm(rayleigh_phase(cosang) * dom, L)  # (G, V, W)
-        j_m = torch.bmm(atmosphere_mie_phase(cosang, atm) * dom, L)
+        pm = spectral_mie_phase(cosang, atm)  # (G, V, D, 1), or (G, V, D, W) for lognormal_mie
+        j_m = torch.bmm(pm[..., 0] * dom, L) if pm.shape[-1] == 1 else torch.einsum("gvdw,gdw->gvw", pm * dom.unsqueeze(-1), L)
         out = j_r * (dens[:, 0, None, None] * atm.rayleigh_scattering) + j_m * (dens[:, 1, None, None] * atm.mie_scattering)
         return out  # (G, V, W)
 

@@ -25,7 +25,7 @@ from ..geometry import atmosphere_segment, distance_to_top, point_along_ray, saf
 from ..quadrature import nodes_weights, validate_rule
 from ..transmittance import ColumnFn, OpticalDepthIntegrator, ozone_column, prepare_columns
 from ..transmittance.quadrature import QuadratureOpticalDepth
-from .phase import atmosphere_mie_phase, rayleigh_phase
+from .phase import rayleigh_phase, spectral_mie_phase
 
 CHUNK_BYTES_CPU: float = 64e6
 """Default working memory per chunk of rays on the CPU [bytes]: large enough that the
@@ -140,13 +140,8 @@ def ray_parameters(atm: Atmosphere, view: Tensor, sun: Tensor, altitude) -> tupl
     return r, mu, mu_s, nu
 
 
-def view_ray_samples(atm: Atmosphere, r: Tensor, mu: Tensor, mu_s: Tensor, nu: Tensor, x: Tensor) -> ViewRaySamples:
-    """Place the nodes ``x`` (on [0, 1]) of the outer rule on the in-atmosphere part of each view ray.
-
-    Args:
-        r, mu, mu_s, nu: observer radius and cosines, shape (n,). [m], [1]
-        x: quadrature nodes on [0, 1], shape (N,).
-    """
+def _segment_start(atm: Atmosphere, r: Tensor, mu: Tensor, mu_s: Tensor, nu: Tensor):
+    """(hits, seg, r0, mu0, mus0) of :class:`ViewRaySamples`: the in-atmosphere part of each view ray."""
     Rb, Rt = atm.bottom_radius, atm.top_radius
     start, end, hits = atmosphere_segment(r, mu, Rb, Rt)
     seg = end - start
@@ -156,6 +151,18 @@ def view_ray_samples(atm: Atmosphere, r: Tensor, mu: Tensor, mu_s: Tensor, nu: T
     # (zero-length) segments the integrators see inside the atmosphere, which tables require.
     r0 = torch.clamp_max(r0, Rt)
     mus0 = sun_cosine_along_ray(r, mu_s, nu, start, r0)
+    return hits, seg, r0, mu0, mus0
+
+
+def view_ray_samples(atm: Atmosphere, r: Tensor, mu: Tensor, mu_s: Tensor, nu: Tensor, x: Tensor) -> ViewRaySamples:
+    """Place the nodes ``x`` (on [0, 1]) of the outer rule on the in-atmosphere part of each view ray.
+
+    Args:
+        r, mu, mu_s, nu: observer radius and cosines, shape (n,). [m], [1]
+        x: quadrature nodes on [0, 1] as fractions of each segment, shape (N,), or per ray (n, N)
+            (:func:`geometric_nodes`).
+    """
+    hits, seg, r0, mu0, mus0 = _segment_start(atm, r, mu, mu_s, nu)
     s = seg.unsqueeze(-1) * x
     r0e, mu0e, mus0e, nue = (t.unsqueeze(-1) for t in (r0, mu0, mus0, nu))
     r_j, _ = point_along_ray(r0e, mu0e, s)
@@ -163,8 +170,86 @@ def view_ray_samples(atm: Atmosphere, r: Tensor, mu: Tensor, mu_s: Tensor, nu: T
     return ViewRaySamples(hits, seg, r0, mu0, mus0, s, r_j, mus_j)
 
 
-def _render_chunk(atm, column_fn, r, mu, mu_s, nu, x, w, ground, sun_disk):
+SPACINGS: tuple[str, ...] = ("uniform", "geometric")
+"""How the outer rule's nodes are spread along a view ray: ``uniform`` in distance, or ``geometric``
+(:func:`geometric_nodes`; docs/accuracy.md, "Render defaults")."""
+
+GEOMETRIC_MIN_RATE: float = 1e-6
+"""Smallest rate ``a`` of :func:`geometric_nodes` [1]: at a -> 0 the spacing is uniform, and
+expm1(a x) / expm1(a) stays exact in float32 at this value."""
+
+GEOMETRIC_FALLING_MU: tuple[float, float] = (-0.02, -0.01)
+""":func:`geometric_nodes` goes over to uniform spacing as the view cosine at the segment's start falls from
+-0.01 to -0.02 (linearly in ``a``), so that the nodes and the radiance stay continuous across the horizon. [1]"""
+
+
+def validate_spacing(spacing: str) -> str:
+    if spacing not in SPACINGS:
+        raise ValueError(f"unknown view-ray spacing {spacing!r}; valid: {', '.join(SPACINGS)}")
+    return spacing
+
+
+def _distance_to_climb(r: Tensor, mu: Tensor, height: Tensor) -> Tensor:
+    """Distance along a ray from (r, mu) until it is ``height`` >= 0 higher than r, ``sqrt((r mu)^2 + h (2 r + h)) - r mu``
+    (through the tangent point for mu < 0); for mu >= 0 in the quotient form, without cancellation. Smooth in mu. [m]"""
+    b = r * mu
+    up = height * (2.0 * r + height)
+    root = safe_sqrt(b * b + up)
+    rising = up / torch.clamp_min(root + torch.clamp_min(b, 0.0), torch.finfo(r.dtype).tiny)
+    return torch.where(b >= 0.0, rising, root - b)
+
+
+def geometric_nodes(atm: Atmosphere, r: Tensor, mu: Tensor, mu_s: Tensor, nu: Tensor, x: Tensor) -> tuple[Tensor, Tensor]:
+    """Nodes of the outer rule spaced geometrically along each view ray: fractions of the segment and their Jacobian.
+
+    A uniform rule in distance wastes its nodes on a long ray whose integrand lives in the first
+    kilometres: a 1.2 km Mie layer seen at 5° elevation from the ground, or a hazy sky whose
+    transmittance T(x, y) falls by e within 3 km. Nodes x uniform in ``log(1 + s / l)`` instead,
+
+        s(x) = seg expm1(a x) / expm1(a),   a = log(1 + seg / l),
+
+    are spaced like the density they sample: about ``l`` apart near the start, growing
+    geometrically beyond, so that every layer thinner than the ray, at any elevation, gets nodes.
+    The length ``l`` is the distance along the ray to climb the thinnest scale height ``H_min``,
+    shortened by the extinction at the start (``l_H / (1 + l_H beta_max)``, beta_max over
+    wavelengths), plus, with the sun below the observer's horizon, the distance to climb out of
+    the planet's shadow (to ``R / cos(depression)``, where the light starts). Rays that go down
+    from their start (the ground or a tangent point is where the density peaks) keep the uniform
+    spacing (a -> 0 as mu0 falls through :data:`GEOMETRIC_FALLING_MU`).
+
+    Args:
+        r, mu, mu_s, nu: observer radius and cosines, shape (n,). [m], [1]
+        x: nodes of the rule on [0, 1], shape (N,).
+
+    Returns:
+        (u, du_dx): node fractions of each ray's segment and d u / d x, shape (n, N) each. [1]
+        ``int_0^seg f(s) ds = seg sum_j w_j du_dx_j f(seg u_j)``.
+    """
+    Rb = atm.bottom_radius
+    _, seg, r0, mu0, mus0 = _segment_start(atm, r, mu, mu_s, nu)
+    h0 = torch.clamp_min(r0 - Rb, 0.0)
+    l_h = _distance_to_climb(r0, mu0, atm.scale_heights.min())
+    dens0 = with_mie_profile(torch.exp(h0.unsqueeze(-1) * -(1.0 / atm.scale_heights)), h0, atm)  # (n, K)
+    beta = (dens0 @ atm.extinction_matrix).amax(-1)  # largest extinction at the start [1/m]
+    ell = l_h / (1.0 + l_h * beta)
+    # Sun below the horizon: the ray is dark until it rises above the shadow, R / cos(depression) - r0.
+    m = torch.clamp_max(mus0, 0.0)
+    cos_d = safe_sqrt(1.0 - m * m)
+    shadow = Rb * (m * m) / torch.clamp_min(cos_d * (1.0 + cos_d), 1e-6)  # R (1 / cos - 1), stable at m = 0
+    # (rising form: exactly 0 in daylight, where the climb of 0 m of a falling ray, 2 r0 |mu0|, would put a kink in mu0)
+    ell = ell + _distance_to_climb(r0, torch.clamp_min(mu0, 0.0), torch.clamp_min(shadow - h0, 0.0))
+    lo, hi = GEOMETRIC_FALLING_MU
+    rising = torch.clamp((mu0 - lo) / (hi - lo), 0.0, 1.0)
+    a = torch.clamp_min(rising * torch.log1p(seg / ell), GEOMETRIC_MIN_RATE).unsqueeze(-1)
+    den = torch.expm1(a)
+    return torch.expm1(a * x) / den, a * torch.exp(a * x) / den
+
+
+def _render_chunk(atm, column_fn, r, mu, mu_s, nu, x, w, ground, sun_disk, spacing="uniform"):
     Rb, Rt = atm.bottom_radius, atm.top_radius
+    if spacing == "geometric":
+        x, du_dx = geometric_nodes(atm, r, mu, mu_s, nu, x)
+        w = w * du_dx  # (n, N)
     hits, seg, r0, mu0, mus0, s, r_j, mus_j = view_ray_samples(atm, r, mu, mu_s, nu, x)
     r0e, mu0e = r0.unsqueeze(-1), mu0.unsqueeze(-1)
     # T(x, y_j) T(y_j, sun) = exp(-(column(x, y_j) + column(y_j, sun)) @ extinction): one
@@ -178,7 +263,7 @@ def _render_chunk(atm, column_fn, r, mu, mu_s, nu, x, w, ground, sun_disk):
     wd = dens * (vis * (w * seg.unsqueeze(-1))).unsqueeze(-1)  # quadrature weight x density x sun fraction
     ray_int = torch.bmm(wd.transpose(1, 2), trans)  # (n, 2, W)
     p_r = rayleigh_phase(nu).unsqueeze(-1)
-    p_m = atmosphere_mie_phase(nu, atm).unsqueeze(-1)
+    p_m = spectral_mie_phase(nu, atm)  # (n, 1), or (n, W) for lognormal_mie
     radiance = ray_int[:, 0] * atm.rayleigh_scattering * p_r + ray_int[:, 1] * atm.mie_scattering * p_m
     radiance = radiance * atm.solar_irradiance
     if ground:
@@ -211,6 +296,7 @@ def single_scattering(
     sun_disk: bool = False,
     chunk_bytes: float | None = None,
     column_fn: ColumnFn | None = None,
+    spacing: str = "uniform",
 ) -> Tensor:
     """Spectral single-scattering radiance for a batch of rays.
 
@@ -229,11 +315,14 @@ def single_scattering(
         chunk_bytes: working memory per chunk of rays, bounding memory for large images
             (default CHUNK_BYTES_CPU on the CPU, CHUNK_BYTES_ACCELERATOR elsewhere). [bytes]
         column_fn: a prepared integrator (to reuse precomputation across calls).
+        spacing: ``uniform`` (nodes spread evenly in distance) or ``geometric`` (:func:`geometric_nodes`:
+            dense where the thinnest layer is; ``skyfit render``'s default, docs/accuracy.md).
 
     Returns:
         Spectral radiance, shape (..., W). [W/(m^2 sr nm)]
     """
     validate_rule(rule)
+    validate_spacing(spacing)
     dtype, device = atm.dtype, atm.device
     r, mu, mu_s, nu = (torch.as_tensor(t, dtype=dtype, device=device) for t in (r, mu, mu_s, nu))
     r, mu, mu_s, nu = torch.broadcast_tensors(r, mu, mu_s, nu)
@@ -252,7 +341,7 @@ def single_scattering(
         chunk_bytes = CHUNK_BYTES_CPU if torch.device(device).type == "cpu" else CHUNK_BYTES_ACCELERATOR
     step = max(1, int(chunk_bytes // per_ray))
     out = [
-        _render_chunk(atm, column_fn, r[i : i + step], mu[i : i + step], mu_s[i : i + step], nu[i : i + step], x, w, ground, sun_disk)
+        _render_chunk(atm, column_fn, r[i : i + step], mu[i : i + step], mu_s[i : i + step], nu[i : i + step], x, w, ground, sun_disk, spacing)
         for i in range(0, r.shape[0], step)
     ]
     res = torch.cat(out, 0) if out else torch.zeros(0, n_w, dtype=dtype, device=device)
