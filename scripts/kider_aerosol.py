@@ -1,10 +1,21 @@
-"""Kider 2013-05-27 per-capture fits with exposure and heading as the only nuisances: the plain aerosol
-against the two-term Henyey-Greenstein phase and the boundary-layer profile (docs/aerosol.md).
+"""Kider 2013-05-27 with exposure and heading as the only nuisances (issue 14): per-capture fits, one
+joint fit of the day and fit-one-predict-the-others, for the plain aerosol and the new rungs (docs/aerosol.md).
 
-    .venv/bin/python scripts/kider_aerosol.py --variants hg,tthg_bl,tthg,bl --out /tmp/kider_aerosol
+    .venv/bin/python scripts/kider_aerosol.py --stage fits --variants hg,tthg_bl,mie
+    .venv/bin/python scripts/kider_aerosol.py --stage joint --variants hg
+    .venv/bin/python scripts/kider_aerosol.py --stage cross --variants hg --sources 12.00,09.30,13.30
+    .venv/bin/python scripts/kider_aerosol.py --stage report --variants hg,tthg_bl,mie    # markdown + JSON
 
-One JSON line per fit (variant, capture, RMSE, CPU s, fitted values); then per variant the mean and worst RMSE.
-Config: configs/kider.yaml with its fit.free reduced to the atmosphere's five values + exposure + sun_azimuth_offset.
+Config: configs/kider.yaml (its renderer and optimiser settings) with fit.free replaced by the
+atmosphere's values of the variant + ``exposure`` + ``sun_azimuth_offset`` (no sun zenith offset, no
+camera tilt). Variants:
+
+- ``hg``: Henyey-Greenstein, exponential profile (the config's model);
+- ``tthg``, ``bl``, ``tthg_bl``: + the two-term phase (g2, f), + the boundary layer (h_mix), both;
+- ``mie``: the log-normal Mie phase (r_g, sigma_g in place of g and alpha; m = 1.45 + 0.005i).
+
+Results are cached per fit in --work (rerun to resume). Score: RMSE over the valid samples and the
+36 bands of 10 nm in 360-720 nm, mW/(m^2 sr nm), as docs/kider.md.
 """
 from __future__ import annotations
 
@@ -15,6 +26,7 @@ import statistics
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -22,46 +34,219 @@ DAY = ROOT.parent / "shared" / "data" / "kider2014" / "2013-05-27"
 CONFIG = ROOT / "configs" / "kider.yaml"
 ATMOSPHERE = ["rayleigh_scale", "mie_beta_550", "mie_angstrom_alpha", "mie_scale_height", "mie_g"]
 NUISANCE = ["exposure", "sun_azimuth_offset"]
-VARIANTS = {
-    "hg": [],
-    "tthg": ["mie_g2", "mie_hg_weight"],
-    "bl": ["mie_mixing_height"],
-    "tthg_bl": ["mie_g2", "mie_hg_weight", "mie_mixing_height"],
+VARIANTS = {  # (added, dropped) atmosphere values
+    "hg": ([], []),
+    "tthg": (["mie_g2", "mie_hg_weight"], []),
+    "bl": (["mie_mixing_height"], []),
+    "tthg_bl": (["mie_g2", "mie_hg_weight", "mie_mixing_height"], []),
+    "mie": (["mie_median_radius", "mie_geometric_sigma"], ["mie_g", "mie_angstrom_alpha"]),
 }
 
 
-def main() -> None:
+def _captures() -> list[Path]:
+    return sorted(p for p in DAY.iterdir() if p.is_dir() and "___" in p.name)
+
+
+def _short(p: Path) -> str:
+    return p.name.split("___")[-1][:5]
+
+
+def variant_config(v: str) -> dict:
     from skyfit.atmosphere import load_yaml
+
+    cfg = copy.deepcopy(load_yaml(str(CONFIG)))
+    add, drop = VARIANTS[v]
+    cfg["fit"]["free"] = [n for n in ATMOSPHERE if n not in drop] + add + NUISANCE
+    return cfg
+
+
+def stage_fits(work: Path, v: str, only: list[str] | None) -> None:
     from skyfit.fit.run import run_fit
 
+    cfg = variant_config(v)
+    for cap in _captures():
+        name = _short(cap)
+        out = work / f"{v}_{name}.json"
+        if (only and name not in only) or out.exists():
+            continue
+        t0 = time.process_time()
+        res = run_fit([cap], cfg, out, config_source=str(CONFIG), plots=False)
+        cpu = time.process_time() - t0
+        out.write_text(json.dumps({**json.loads(out.read_text()), "cpu_seconds": cpu}, indent=1))
+        print(json.dumps({"variant": v, "capture": name, "rmse": round(res["metrics"]["rmse"], 3), "cpu_s": round(cpu, 1),
+                          "converged": (res.get("convergence") or {}).get("converged"),
+                          "free": {k: res["parameters"][k] for k in res["free"]}}), flush=True)
+
+
+def stage_joint(work: Path, v: str) -> None:
+    """One fit of the day: the atmosphere shared, exposure and heading per capture, warm-started at
+    the per-capture fits (the atmosphere at their median)."""
+    from skyfit.fit.parameters import PARAMETERS
+    from skyfit.fit.run import run_fit
+
+    out = work / f"{v}_joint.json"
+    if out.exists():
+        return
+    cfg = variant_config(v)
+    caps = _captures()
+    fits = [work / f"{v}_{_short(c)}.json" for c in caps]
+    overrides: dict = {"max_iter": 300}
+    if all(f.exists() for f in fits):
+        per = [json.loads(f.read_text())["parameters"] for f in fits]
+        overrides["initial"] = {n: ([p[n] for p in per] if PARAMETERS[n].nuisance else float(np.median([p[n] for p in per])))
+                                for n in cfg["fit"]["free"]}
+    t0 = time.process_time()
+    res = run_fit(caps, cfg, out, config_source=str(CONFIG), plots=False, progress=True, overrides=overrides)
+    cpu = time.process_time() - t0
+    out.write_text(json.dumps({**json.loads(out.read_text()), "cpu_seconds": cpu}, indent=1))
+    print(json.dumps({"variant": v, "joint_rmse": res["metrics"]["rmse"], "cpu_s": round(cpu, 1),
+                      "per": [round(p["rmse"], 3) for p in res["metrics"]["per_observation"]]}), flush=True)
+
+
+def stage_cross(work: Path, v: str, sources: list[str]) -> None:
+    """Each source's fit predicts every other capture as is and with exposure and heading re-estimated."""
+    from skyfit.fit.run import run_evaluate
+
+    caps = _captures()
+    for src in sources:
+        path = work / f"{v}_{src}.json"
+        if not path.exists():
+            raise SystemExit(f"{path} missing: run --stage fits first")
+        for mode in ("asis", "refit"):
+            out = work / f"{v}_cross_{src}_{mode}.json"
+            done = json.loads(out.read_text()) if out.exists() else {}
+            for cap in caps:
+                name = _short(cap)
+                if name == src or name in done:
+                    continue
+                ev = run_evaluate(path, [cap], refit_nuisance=mode == "refit", refit=NUISANCE if mode == "refit" else None)
+                done[name] = {"rmse": ev["rmse"], "delta_e": ev["delta_e"]}
+                out.write_text(json.dumps(done, indent=1))
+            print(json.dumps({"variant": v, "source": src, "mode": mode,
+                              "mean_rmse": round(statistics.mean(d["rmse"] for d in done.values()), 3)}), flush=True)
+
+
+def _sun_share(res: dict, cap: Path) -> float:
+    """Share of the squared error in the 5 samples nearest the sun, at the fitted values."""
+    import dataclasses
+
+    from skyfit.fit.parameters import NUISANCE as ALL_NUISANCE
+    from skyfit.fit.problem import fit_settings, load_data, prepare
+    from skyfit.fit.results import fitted_atmosphere_values, model_from_result
+
+    s = dataclasses.replace(fit_settings(res.get("settings"), None), max_samples=None)
+    obs = load_data([cap], s, None, None)
+    prep = prepare(obs, res["config"], s, model=model_from_result(res))
+    values = fitted_atmosphere_values(res)
+    for n in ALL_NUISANCE:
+        if n in res["parameters"] and n != "noise_scale":
+            values[n] = [res["parameters"][n]]
+    problem = prep.problem([], [n for n in ALL_NUISANCE if n != "noise_scale"], values)
+    with torch.no_grad():
+        pred = problem.predict(problem.param.initial_vector(s.torch_dtype))[0]
+    o = problem.observations[0]
+    m = o.mask.bool()
+    r = (pred - o.values)[m]
+    d = o.directions[m]
+    sz, sa = o.sun_zenith, o.sun_azimuth
+    sun = torch.stack([torch.sin(sz) * torch.sin(sa), torch.sin(sz) * torch.cos(sa), torch.cos(sz)], -1)  # (3,) or (N, 3)
+    sun = sun[m] if sun.dim() == 2 else sun
+    sq = (r * r).sum(1)
+    return float(sq[torch.argsort(-(d * sun).sum(-1))[:5]].sum() / sq.sum())
+
+
+def stage_report(work: Path, variants: list[str], orientation_work: Path) -> None:
+    """Markdown tables (stdout) and work/report.json: per capture RMSE per variant, the same with the
+    orientation nuisances (docs/kider.md (a)), the 5-nearest-sun error share, joint and cross means."""
+    caps = _captures()
+    names = [_short(c) for c in caps]
+    rep: dict = {"variants": {}}
+    cols = []
+    for v in variants:
+        fits = {n: json.loads((work / f"{v}_{n}.json").read_text()) for n in names if (work / f"{v}_{n}.json").exists()}
+        if not fits:
+            continue
+        cols.append(v)
+        rm = {n: r["metrics"]["rmse"] for n, r in fits.items()}
+        share = {n: _sun_share(fits[n], c) for c in caps if (n := _short(c)) in fits}
+        entry = {"rmse": rm, "mean": statistics.mean(rm.values()), "worst": max(rm.items(), key=lambda t: t[1]),
+                 "sun5_share": share, "sun5_share_mean": statistics.mean(share.values()),
+                 "converged": sum(bool((r.get("convergence") or {}).get("converged")) for r in fits.values()),
+                 "cpu_s_median": statistics.median(r.get("cpu_seconds", r.get("seconds", 0.0)) for r in fits.values()),
+                 "fitted": {n: {k: r["parameters"][k] for k in r["free"]} for n, r in fits.items()}}
+        jp = work / f"{v}_joint.json"
+        if jp.exists():
+            j = json.loads(jp.read_text())
+            entry["joint"] = {"rmse": j["metrics"]["rmse"], "per": [p["rmse"] for p in j["metrics"]["per_observation"]]}
+        for mode in ("asis", "refit"):
+            per_src = {}
+            for f in work.glob(f"{v}_cross_*_{mode}.json"):
+                d = json.loads(f.read_text())
+                per_src[f.stem.split("_")[-2]] = statistics.mean(x["rmse"] for x in d.values())
+            if per_src:
+                entry[f"cross_{mode}"] = {"per_source": per_src, "mean": statistics.mean(per_src.values())}
+        rep["variants"][v] = entry
+    orient = {n: json.loads((orientation_work / f"fit_{n}.json").read_text()) for n in names
+              if (orientation_work / f"fit_{n}.json").exists()}
+    if orient:
+        rep["orientation"] = {"rmse": {n: r["metrics"]["rmse"] for n, r in orient.items()},
+                              "sun5_share": {n: _sun_share(r, c) for c in caps if (n := _short(c)) in orient
+                                             for r in [orient[n]]}}
+    (work / "report.json").write_text(json.dumps(rep, indent=1))
+    head = "| capture | " + " | ".join(cols) + (" | HG + 4 orientation nuisances (docs/kider.md (a)) |" if orient else " |")
+    print(head)
+    print("|" + "---|" * (head.count("|") - 1))
+    for n in names:
+        row = [f"{rep['variants'][v]['rmse'][n]:.2f} ({100 * rep['variants'][v]['sun5_share'][n]:.0f} %)"
+               if n in rep["variants"][v]["rmse"] else "-" for v in cols]
+        if orient:
+            row.append(f"{rep['orientation']['rmse'][n]:.2f} ({100 * rep['orientation']['sun5_share'][n]:.0f} %)" if n in orient else "-")
+        print(f"| {n} | " + " | ".join(row) + " |")
+    for key, label in (("mean", "per-capture mean"), ("worst", "worst")):
+        vals = [f"{rep['variants'][v][key]:.2f}" if key == "mean" else f"{rep['variants'][v][key][1]:.2f} ({rep['variants'][v][key][0]})"
+                for v in cols]
+        if orient:
+            o = rep["orientation"]["rmse"]
+            vals.append(f"{statistics.mean(o.values()):.2f}" if key == "mean" else
+                        "{1:.2f} ({0})".format(*max(o.items(), key=lambda t: t[1])))
+        print(f"| **{label}** | " + " | ".join(vals) + " |")
+    for key, label in (("joint", "joint day fit"), ("cross_refit", "fit one, predict the others, exposure + heading re-estimated"),
+                       ("cross_asis", "fit one, predict the others, as is")):
+        vals = []
+        for v in cols:
+            e = rep["variants"][v].get(key)
+            vals.append("-" if e is None else f"{e['rmse']:.2f}" if key == "joint" else f"{e['mean']:.2f} ({len(e['per_source'])} sources)")
+        print(f"| {label} | " + " | ".join(vals) + (" | - |" if orient else " |"))
+
+
+def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--stage", choices=("fits", "joint", "cross", "report"), default="fits")
     ap.add_argument("--variants", default="hg,tthg_bl")
-    ap.add_argument("--captures", default="all")
-    ap.add_argument("--out", default="/tmp/kider_aerosol")
+    ap.add_argument("--captures", default="all", help="fits: comma list of HH.MM")
+    ap.add_argument("--sources", default="12.00", help="cross: comma list of HH.MM source captures")
+    ap.add_argument("--work", default=str(ROOT / "docs" / "kider_instrument"))
+    ap.add_argument("--orientation-work", default=str(ROOT / "docs" / "kider"), help="report: docs/kider.md (a)'s fits")
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    caps = sorted(p for p in DAY.iterdir() if p.is_dir() and "___" in p.name)
-    if args.captures != "all":
-        caps = [c for c in caps if c.name.split("___")[-1][:5] in args.captures.split(",")]
-    base = load_yaml(str(CONFIG))
-    for v in args.variants.split(","):
-        cfg = copy.deepcopy(base)
-        cfg["fit"]["free"] = ATMOSPHERE + VARIANTS[v] + NUISANCE
-        rmse = {}
-        for cap in caps:
-            name = cap.name.split("___")[-1][:5]
-            t0 = time.process_time()
-            res = run_fit([cap], cfg, out / f"{v}_{name}.json", config_source=str(CONFIG), plots=False)
-            rmse[name] = res["metrics"]["rmse"]
-            print(json.dumps({"variant": v, "capture": name, "rmse": round(rmse[name], 3),
-                              "cpu_s": round(time.process_time() - t0, 1),
-                              "free": {k: res["parameters"][k] for k in res["free"]}}), flush=True)
-        worst = max(rmse, key=rmse.get)
-        print(json.dumps({"variant": v, "mean_rmse": round(statistics.mean(rmse.values()), 3),
-                          "worst": [worst, round(rmse[worst], 3)], "n": len(rmse)}), flush=True)
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    variants = args.variants.split(",")
+    only = None if args.captures == "all" else args.captures.split(",")
+    for v in variants:
+        if v not in VARIANTS:
+            raise SystemExit(f"unknown variant {v!r}: one of {', '.join(VARIANTS)}")
+    if args.stage == "report":
+        stage_report(work, variants, Path(args.orientation_work))
+        return
+    for v in variants:
+        if args.stage == "fits":
+            stage_fits(work, v, only)
+        elif args.stage == "joint":
+            stage_joint(work, v)
+        else:
+            stage_cross(work, v, args.sources.split(","))
 
 
 if __name__ == "__main__":

@@ -70,6 +70,7 @@ def stage_fits(work: Path, day: Path, only: list[str] | None) -> None:
         t0 = time.process_time()
         res = run_fit([cap], cfg, out, config_source=str(CONFIG), plots=False)
         cpu = time.process_time() - t0
+        out.write_text(json.dumps({**json.loads(out.read_text()), "cpu_seconds": cpu}, indent=2))  # for the report
         print(json.dumps({"capture": name, "rmse": round(res["metrics"]["rmse"], 3), "cpu_s": round(cpu, 1),
                           "free": {k: res["parameters"][k] for k in res["free"]}}), flush=True)
 
@@ -218,6 +219,31 @@ def _instrument(fits: dict) -> list[str]:
     return out
 
 
+def _method(r: dict) -> str:
+    """The optimiser of a RESULT.json (results written before it was recorded: L-BFGS)."""
+    return (r.get("convergence") or {}).get("method", "lbfgs")
+
+
+def _optimiser_note(work: Path, fits: dict) -> list[str]:
+    """Which optimiser made (a), and whether (b) and (c) were made with another one."""
+    methods = sorted({_method(r) for r in fits.values()})
+    conv = sum(bool(r["convergence"].get("converged")) for r in fits.values())
+    out = [f"Optimiser of (a): {', '.join(methods)} (`fit.optimiser` auto; docs/fitting.md, \"Optimiser\"); "
+           f"{conv} of {len(fits)} fits converged by its criterion; CPU s is process CPU time, 1 torch thread."]
+    jp = work / "joint.json"
+    old = (jp.exists() and _method(json.loads(jp.read_text())) != "lm") or any(work.glob("cross_*.json"))
+    if "lm" in methods and old:
+        old_fits = work / "lbfgs_fits.json"
+        extra = ""
+        if old_fits.exists():  # the L-BFGS per-capture fits (b) and (c) were started from / evaluated
+            prev = json.loads(old_fits.read_text())
+            d = [abs(prev[c]["rmse"] - r["metrics"]["rmse"]) for c, r in fits.items() if c in prev]
+            extra = f" Their RMSE equals (a)'s to {max(d):.1e} (largest difference over {len(d)} captures)."
+        out += ["", "(b) and (c) below were computed with the L-BFGS optimiser, from the L-BFGS per-capture fits "
+                "(`--optimiser lbfgs`); they were not rerun when (a) moved to Levenberg-Marquardt." + extra]
+    return out + [""]
+
+
 def stage_report(work: Path, day: Path) -> str:
     caps = [_short(c) for c in _captures(day)]
     fits = {c: json.loads((work / f"fit_{c}.json").read_text()) for c in caps if (work / f"fit_{c}.json").exists()}
@@ -243,8 +269,9 @@ def stage_report(work: Path, day: Path) -> str:
                 v = r["parameters"][n]
                 vals.append(f"{np.degrees(v):.2f}°" if n in ORIENTATION else f"{v:.4g}")
             lines.append(f"| {c} | {r['metrics']['rmse']:.2f} | {r['metrics']['delta_e']:.2f} | " + " | ".join(vals)
-                         + f" | {r['seconds']:.0f} |")
+                         + f" | {r.get('cpu_seconds', r['seconds']):.{1 if 'cpu_seconds' in r else 0}f} |")
         lines += ["", f"Mean RMSE {np.mean(rm):.2f} (min {np.min(rm):.2f}, max {np.max(rm):.2f}) over {len(rm)} captures.", ""]
+        lines += _optimiser_note(work, fits)
         lines += _instrument(fits)
     jp = work / "joint.json"
     if jp.exists():

@@ -45,7 +45,11 @@ def score(truth: dict, result: dict) -> dict:
         "sun_separation_deg": sun["separation_deg"], "sun_detected": sun["detected_px"] is not None,
         "rmse_rel": result["metrics"]["rmse_rel"], "seconds": result["seconds"], "split": result["seconds_split"],
         "horizon_fraction": truth["obstacles"]["horizon_fraction"], "camera": truth["sensor"]["name"],
-        "vignetting_rim": truth["vignetting"]["rim_value"], "notes": result["notes"],
+        "vignetting_rim": truth["vignetting"]["rim_value"], "vignetting_fit": cam.get("vignetting"),
+        "gains_true": [f / truth["frames"][0]["linear_over_cie_rgb"][1] for f in truth["frames"][0]["linear_over_cie_rgb"][::2]],
+        "gains_fit": [cam.get("gain_red"), cam.get("gain_blue")],
+        "ms": {k: result.get("convergence", {}).get(k) for k in ("ms_refreshes", "ms_table_builds", "ms_factor_change")},
+        "notes": result["notes"],
     }
 
 
@@ -59,6 +63,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="docs/photos", help="where study.json and study.md go (default docs/photos)")
     ap.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     ap.add_argument("--only", help="comma list of case indices to fit")
+    ap.add_argument("--part", help="K/N: fit every N-th case from the K-th (0-based) and write OUT/study_partK.json only "
+                                   "(several processes on a shared machine); --merge joins them")
+    ap.add_argument("--merge", action="store_true", help="join OUT/study_part*.json into study.json and study.md")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     import skyfit
@@ -70,17 +77,26 @@ def main(argv=None) -> int:
         make_suite(cases, n=args.n, seed=args.seed, size=args.size, bracket_size=args.bracket_size,
                    progress=lambda msg: print(msg, file=sys.stderr, flush=True))
         print(f"suite made in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+    out = Path(args.out)
+    if args.merge:
+        rows = []
+        for f in sorted(out.glob("study_part*.json")):
+            rows += json.loads(f.read_text())["cases"]
+        rows.sort(key=lambda r: r["case"])
+        return write_study(rows, out, argv)
     folders = sorted(p for p in cases.iterdir() if (p / "truth.json").exists())
     if args.only:
         keep = {int(v) for v in args.only.split(",")}
         folders = [f for i, f in enumerate(folders) if i in keep]
-    out = Path(args.out)
+    if args.part:
+        k, n = (int(v) for v in args.part.split("/"))
+        folders = folders[k::n]
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for f in folders:
         truth = json.loads((f / "truth.json").read_text())
         photo = f / truth["photo"].rstrip("/")
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         try:
             r = skyfit.fit_photo(photo, time=truth["time"], location=truth["location"])
             row = score(truth, r.result)
@@ -89,10 +105,21 @@ def main(argv=None) -> int:
             row = {"seed": truth["seed"], "error": str(e)}
         row["case"] = f.name
         row["wall_s"] = time.perf_counter() - t0
+        row["cpu_s"] = time.process_time() - c0  # all threads of this process: the machine is shared
         row["load_avg"] = os.getloadavg()[0]
         rows.append(row)
         print(json.dumps({k: row.get(k) for k in ("case", "aod_true", "aod_fit", "heading_err_deg", "centre_err_px",
-                                                  "sun_separation_deg", "rmse_rel", "wall_s", "error")}), flush=True)
+                                                  "sun_separation_deg", "rmse_rel", "wall_s", "cpu_s", "load_avg", "error")}),
+              flush=True)
+        if args.part:  # after every case: a killed part keeps what it has
+            (out / f"study_part{args.part.split('/')[0]}.json").write_text(json.dumps({"cases": rows}, indent=1, default=str))
+    if args.part:
+        return 0
+    return write_study(rows, out, argv)
+
+
+def write_study(rows: list, out: Path, argv) -> int:
+    """study.json (summary and every case) and study.md (the table) of the fitted cases."""
     ok = [r for r in rows if "error" not in r]
     aod_rel = np.array([r["aod_fit"] / r["aod_true"] - 1 for r in ok])
     summary = {
@@ -106,22 +133,25 @@ def main(argv=None) -> int:
         "sun_detected": sum(r["sun_detected"] for r in ok),
         "projection_right": sum(r["projection_fit"] == r["projection_true"] for r in ok),
         "median_wall_s": float(np.median([r["wall_s"] for r in ok])) if ok else None,
+        "median_cpu_s": float(np.median([r["cpu_s"] for r in ok])) if ok else None,
+        "median_load_avg": float(np.median([r["load_avg"] for r in rows])) if rows else None,
         "command": "scripts/photo_study.py " + " ".join(argv if argv is not None else sys.argv[1:]),
     }
     (out / "study.json").write_text(json.dumps({"summary": summary, "cases": rows}, indent=1, default=str))
     lines = ["| case | bracket | projection (true → fit) | sun zenith | AOD true | AOD fit ± σ | α true / fit | g true / fit "
-             "| heading err [°] | centre err [px] | sun sep [°] | rel. rms | s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| heading err [°] | centre err [px] | sun sep [°] | rel. rms | wall s | CPU s | load |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['case']} | | | | | failed: {r['error']} | | | | | | | |")
+            lines.append(f"| {r['case']} | | | | | failed: {r['error']} | | | | | | | | | |")
             continue
         sig = f" ± {r['aod_sigma']:.3f}" if r.get("aod_sigma") else ""
         sep = "—" if r["sun_separation_deg"] is None else f"{r['sun_separation_deg']:.2f}"
         lines.append(f"| {r['case']} | {'yes' if r['bracket'] else 'no'} | {r['projection_true']} → {r['projection_fit']} "
                      f"| {r['sun_zenith_deg']:.1f} | {r['aod_true']:.3f} | {r['aod_fit']:.3f}{sig} "
                      f"| {r['alpha_true']:.2f} / {r['alpha_fit']:.2f} | {r['g_true']:.2f} / {r['g_fit']:.2f} "
-                     f"| {r['heading_err_deg']:+.2f} | {r['centre_err_px']:.2f} | {sep} | {r['rmse_rel']:.3f} | {r['wall_s']:.0f} |")
+                     f"| {r['heading_err_deg']:+.2f} | {r['centre_err_px']:.2f} | {sep} | {r['rmse_rel']:.3f} | {r['wall_s']:.0f} "
+                     f"| {r.get('cpu_s', float('nan')):.0f} | {r.get('load_avg', float('nan')):.1f} |")
     (out / "study.md").write_text("\n".join(lines) + "\n\n```json\n" + json.dumps(summary, indent=1) + "\n```\n")
     print(json.dumps(summary, indent=1))
     return 0

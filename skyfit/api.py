@@ -28,16 +28,18 @@ from .fit.optimise import fit as _optimise
 from .fit.problem import FitSettings, fit_settings, make_model, prepare
 from .fit.results import (atmosphere_from_result, check_result, model_from_result, read_result, result_dict,
                           save_result)
-from .render.auto import choose, parse_accuracy, setting_fields
+from .render.auto import RENDER_DEFAULTS, choose, parse_accuracy, setting_fields
 from .render.colour import spectral_to_xyz, tonemap_srgb8, xyz_to_linear_srgb
 from .render.sky import render_vectors
 from .scattering.bruneton_tables import TableSizes
 from .scattering.multiple import PrecomputedAtmosphere, precompute
+from .transmittance import parse_integrator
 
 ACCURATE = "rel=1e-4"
-"""The default ``accuracy`` of :func:`render` for single scattering: the cheapest measured setting whose
-relative RMS radiance error is <= 1e-4 x the margin of :mod:`skyfit.render.auto` (docs/benchmarks.md);
-for multiple scattering the default is Bruneton's full tables (2017's sizes), the reference itself."""
+"""A strict ``accuracy``: the cheapest setting measured on the trade study's Earth scenes with relative RMS
+radiance error <= 1e-4 x the margin of :mod:`skyfit.render.auto` (docs/benchmarks.md). It was
+:func:`render`'s default until that missed 1 % per pixel in haze (2.5 % at 5° elevation, earth_hazy;
+docs/accuracy.md, "Render defaults"); the default is now ``skyfit render``'s, RENDER_DEFAULTS."""
 
 
 def resolve_device(device: str | torch.device = "cpu") -> torch.device:
@@ -102,6 +104,9 @@ def sun_vector(sun=None, *, time: str | None = None, location=None, dtype=torch.
 def render_model(accuracy: str | None = None, orders: int = 1, multiple: str = "bruneton",
                  sun_zenith_deg: float = 45.0, altitude_m: float = 0.0, dtype: str = "float64") -> SkyModel:
     """The renderer :func:`render` uses for ``accuracy`` (see there) on a scene (sun zenith, altitude)."""
+    if accuracy is None and orders == 1:  # skyfit render's defaults: within 1 % per pixel above 5° elevation
+        return SkyModel(parse_integrator(RENDER_DEFAULTS["integrator"]), view_samples=RENDER_DEFAULTS["view_samples"],
+                        rule=RENDER_DEFAULTS["rule"], spacing=RENDER_DEFAULTS["spacing"])
     if accuracy is None and orders > 1:
         if multiple == "bruneton":  # the reference: Bruneton 2017's table sizes
             return SkyModel(make_model(FitSettings()).integrator, orders=orders, multiple="bruneton",
@@ -150,8 +155,9 @@ def render(atmosphere: Atmosphere, view: FisheyeCamera | Tensor, sun=None, *, ti
         atmosphere: from :func:`load_atmosphere` (its dtype and device are used).
         view: a :class:`~skyfit.camera.FisheyeCamera`, or unit view vectors East-North-Up, shape (N, 3).
         sun: ``(zenith_deg, azimuth_deg)`` or a unit vector; or ``time=`` and ``location=`` (NREL SPA).
-        accuracy: None (default, accurate: single scattering with the cheapest measured setting of
-            relative error <= 1e-4, :data:`ACCURATE`; multiple scattering with Bruneton's full tables),
+        accuracy: None (default, accurate: single scattering with ``skyfit render``'s defaults,
+            :data:`skyfit.render.auto.RENDER_DEFAULTS`, every pixel above 5° elevation within 1 % of the
+            converged radiance; multiple scattering with Bruneton's full tables), :data:`ACCURATE`,
             or ``"auto"`` (= ``de=1``, mean ΔE 1, fast), ``"de=X"`` or ``"rel=X"``: the cheapest measured
             setting meeting it (:mod:`skyfit.render.auto`, docs/benchmarks.md).
         orders: scattering orders (1 = single scattering).
@@ -251,7 +257,9 @@ class FitResult:
 
     @property
     def sigma(self) -> dict | None:
-        """Laplace standard deviation of each free parameter (None unless fitted with ``laplace=True``)."""
+        """Standard deviation of each free parameter (None unless fitted with ``laplace=True``): noise, numerical
+        model error and discrepancy floor in quadrature, or the noise alone with ``sigma="noise"``
+        (docs/uncertainty.md, "Honest sigma under model error"; the parts in ``result["laplace"]["budget"]``)."""
         return (self.result.get("laplace") or {}).get("sigma")
 
     @property
@@ -315,12 +323,12 @@ def fit(observations, config: str | Path | dict | Atmosphere = "earth", *, free:
         config: the atmosphere to start from: a shipped name, a YAML path, a dict (with an optional
             ``fit:`` section), or an :class:`Atmosphere` from :func:`load_atmosphere` (its config is used).
         free: the fitted parameters (docs/fitting.md); None: the config's ``fit.free`` or the default set.
-        laplace: add the Laplace (Hessian) covariance: :attr:`FitResult.sigma`.
+        laplace: add the Laplace (Hessian) covariance with the error budget: :attr:`FitResult.sigma`.
         progress: a tqdm bar on stderr.
         device: cpu, cuda, cuda:N or auto.
         kider_site: latitude / longitude / elevation / utc_offset_hours for Kider folders.
         **settings: any field of :class:`skyfit.fit.problem.FitSettings` (loss, integrator, orders,
-            accuracy, starts, max_iter, dtype, initial, per_observation, ...).
+            accuracy, starts, max_iter, dtype, initial, per_observation, sigma, ...).
     """
     t0 = _time.perf_counter()
     cfg, source = _config_of(config)

@@ -37,10 +37,11 @@ from .io.atomic import check_writable, write_text_atomic
 from .fit.data import DataWarning
 from .resources import Estimate, check, single_scattering_estimate, tables_estimate
 from .quadrature import RULES
-from .render.auto import choose, describe, parse_accuracy
+from .render.auto import RENDER_DEFAULTS, choose, describe, parse_accuracy
 from .scattering.bruneton_tables import TableSizes
 from .scattering.hillaire import hillaire_lut
 from .scattering.multiple import precompute
+from .scattering.single import SPACINGS
 from .tools.bench import machine_info, run_bench
 from .tools.integrator_calibration import CALIBRATE_QUICK, calibrate_integrators
 from .tools.trade import run_trade_study
@@ -99,7 +100,9 @@ def _camera_from_args(args, size, projection):
 def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projection):
     cam = _camera_from_args(args, size, projection)
     extra = {}
-    if args.orders > 1:
+    if args.orders == 1:
+        extra["spacing"] = _spacing(args)
+    else:
         extra["multiple"] = getattr(args, "multiple", "bruneton")
         if extra["multiple"] == "bruneton":
             extra["table_sizes"] = _table_sizes(getattr(args, "table_sizes", None))
@@ -110,6 +113,12 @@ def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projecti
         atm, cam, sun_zenith, sun_azimuth, integrator, altitude=args.altitude, view_samples=args.view_samples,
         rule=args.rule, orders=args.orders, sun_disk=args.sun_disk, **extra,
     )
+
+
+def _spacing(args) -> str:
+    """The view-ray spacing a render uses: ``--spacing`` for single scattering; Hillaire's single-scattering
+    part is uniformly spaced and Bruneton's tables have no view samples."""
+    return args.spacing if args.orders == 1 else "uniform"
 
 
 def _table_sizes(text: str | None):
@@ -144,6 +153,7 @@ def _exr_payload(img, atm, integrator, args, sun_zenith, sun_azimuth, spectral: 
         "integrator": integrator.settings(),
         "view_samples": args.view_samples,
         "rule": args.rule,
+        "spacing": _spacing(args),
         "orders": args.orders,
         "atmosphere": atm.summary(),
     }
@@ -255,6 +265,7 @@ def _apply_accuracy(args, sun_zenith: float):
         args.orders, args.multiple, args.table_sizes = int(st["orders"]), "bruneton", st["table_sizes"]
     else:
         args.integrator, args.view_samples, args.rule = st["integrator"], int(st["view_samples"]), st["rule"]
+        args.spacing = "uniform"  # the trade study measured every setting with uniform spacing
         if st["multiple"] == "hillaire":
             args.orders, args.multiple, args.hillaire_lut = max(args.orders, 2), "hillaire", st["hillaire_lut"]
     return choice
@@ -485,7 +496,7 @@ FIT_FLAGS = {
     "multiple": "multiple", "view_samples": "view_samples", "rule": "rule", "loss": "loss", "starts": "starts",
     "max_iter": "max_iter", "adam_steps": "adam_steps", "seed": "seed", "wavelengths": "wavelengths",
     "min_elevation": "min_elevation_deg", "sun_mask": "sun_mask_deg", "max_samples": "max_samples",
-    "sigma_relative": "sigma_relative", "accuracy": "accuracy",
+    "sigma_relative": "sigma_relative", "accuracy": "accuracy", "sigma": "sigma", "optimiser": "optimiser",
 }
 """The per-fit flags of ``fit`` and ``batch`` (argparse dest -> FitSettings field)."""
 
@@ -509,14 +520,20 @@ def _add_fit_options(p, D) -> None:
                    "the cheapest measured renderer setting meeting it replaces --integrator/--view-samples/--rule")
     p.add_argument("--loss", help=f"squared, log, relative, huber, cauchy [:residual=...,delta=...] (default {D.loss})")
     p.add_argument("--starts", type=int, help=f"multi-start points (default {D.starts})")
-    p.add_argument("--max-iter", type=int, help=f"L-BFGS iterations per start (default {D.max_iter})")
-    p.add_argument("--adam-steps", type=int, help=f"Adam warm-start steps per start (default {D.adam_steps})")
+    p.add_argument("--max-iter", type=int, help=f"optimiser iterations per start (default {D.max_iter})")
+    p.add_argument("--optimiser", choices=("auto", "lm", "lbfgs"),
+                   help=f"auto: Levenberg-Marquardt for squared losses, else Adam + L-BFGS (lbfgs: always, as "
+                        f"earlier versions; default {D.optimiser})")
+    p.add_argument("--adam-steps", type=int, help=f"Adam warm-start steps per start of L-BFGS (default {D.adam_steps})")
     p.add_argument("--seed", type=int, help=f"seed of the multi-start spread (default {D.seed})")
     p.add_argument("--wavelengths", help="model grid for RGB data, START:STOP:STEP or a list [nm]")
     p.add_argument("--min-elevation", type=float, help=f"horizon mask: lowest elevation used [deg] (default {D.min_elevation_deg:g})")
     p.add_argument("--sun-mask", type=float, help=f"images: radius of the disk around the sun left out [deg] (default {D.sun_mask_deg:g})")
     p.add_argument("--max-samples", type=int, help="images: use every k-th pixel so that at most this many remain")
     p.add_argument("--sigma-relative", type=float, help=f"images: relative noise when the header has none (default {D.sigma_relative:g})")
+    p.add_argument("--sigma", choices=("total", "noise"),
+                   help=f"--laplace sigma: total (noise + numerical model error + discrepancy floor) or noise only "
+                        f"(default {D.sigma}; docs/uncertainty.md)")
     p.add_argument("--location", help="LAT,LON[,ELEV] [deg, deg, m]: a photo's place (required), Kider data's site "
                    "(default: the Kider site)")
     p.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
@@ -1130,9 +1147,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--max-zenith", type=float, help="field of view: largest angle from the optical axis [deg] (default 90)")
     _add_sun_flags(r)
     r.add_argument("--altitude", type=float, default=0.0, help="observer altitude above the ground [m] (default %(default)g)")
-    r.add_argument("--integrator", default="taylor", help="NAME[:key=value,...], e.g. trapezoid:samples=64, taylor:a=0.45,b=0.45 (default %(default)s)")
-    r.add_argument("--view-samples", type=int, default=32, help="samples of the outer (view-ray) integral (default %(default)s)")
-    r.add_argument("--rule", choices=RULES, default="trapezoid", help="outer quadrature rule (default %(default)s)")
+    # The defaults: within 1 % of the converged radiance above 5° elevation (docs/accuracy.md, "Render defaults").
+    r.add_argument("--integrator", default=RENDER_DEFAULTS["integrator"],
+                   help="NAME[:key=value,...], e.g. trapezoid:samples=64, taylor:a=0.45,b=0.45 (default %(default)s)")
+    r.add_argument("--view-samples", type=int, default=RENDER_DEFAULTS["view_samples"],
+                   help="samples of the outer (view-ray) integral (default %(default)s)")
+    r.add_argument("--rule", choices=RULES, default=RENDER_DEFAULTS["rule"], help="outer quadrature rule (default %(default)s)")
+    r.add_argument("--spacing", choices=SPACINGS, default=RENDER_DEFAULTS["spacing"],
+                   help="single scattering: view-ray nodes uniform in distance, or geometric (dense where the "
+                        "thinnest layer is; docs/accuracy.md) (default %(default)s)")
     r.add_argument("--orders", type=int, default=1, help="scattering orders (1 = single scattering; >= 2: Bruneton's precomputed tables; default %(default)s)")
     r.add_argument("--multiple", choices=("bruneton", "hillaire"), default="bruneton",
                    help="with --orders >= 2: Bruneton's full orders, or Hillaire 2020's cheaper approximation (default %(default)s)")

@@ -33,8 +33,9 @@ def test_render_along_directions_is_render_vectors(scene):
     views = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, -0.8, 0.6]], dtype=torch.float64)
     sky = skyfit.render(atm, views, sun=SUN)
     sun = skyfit.sun_vector(SUN)
-    # the accurate default is the measured setting gauss:samples=16 with 16 Gauss view samples
-    ref = render_vectors(atm, views, sun, make_integrator("gauss", samples=16), view_samples=16, rule="gauss")
+    # the accurate default is skyfit render's (RENDER_DEFAULTS: gauss:samples=16, 24 geometrically spaced Gauss nodes)
+    ref = render_vectors(atm, views, sun, make_integrator("gauss", samples=16), view_samples=24, rule="gauss",
+                         spacing="geometric")
     torch.testing.assert_close(sky.radiance, ref, rtol=0, atol=0)
     assert sky.valid.all() and sky.rgb.shape == (3, 3)
 

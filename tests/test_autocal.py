@@ -258,6 +258,14 @@ def test_sun_mask_covers_detected_and_computed_sun_and_grows_with_the_blob():
     assert not m_small[(g_comp > alpha_small + 0.3) & (g_det > alpha_small + 0.3)].any()
     assert m_big[(g_comp < alpha - 0.3) | (g_det < alpha - 0.3)].all()
     assert not m_big[(g_comp > alpha + 0.3) & (g_det > alpha + 0.3)].any()
+    # a cap below the blob's radius + margin (SUN_MASK_MAX_DEG in a photo fit: the saturated aureole beyond it is
+    # fitted as censored bounds) masks that many degrees around both suns and no more
+    m_cap = sun_mask(cam.shape, big, cam, 50.0, 140.0, max_radius_deg=5.0)
+    assert m_cap[(g_comp < 4.7) | (g_det < 4.7)].all()
+    assert not m_cap[(g_comp > 5.3) & (g_det > 5.3)].any()
+    assert m_big[(g_comp > 5.3) & (g_det > 5.3)].any()  # the cap took something away
+    with pytest.raises(CalibrationError, match="max_radius_deg must be >= min_radius_deg"):
+        sun_mask(cam.shape, big, cam, 50.0, 140.0, max_radius_deg=2.0)
 
 
 def test_grow_outlier_mask_keeps_structures_not_noise():

@@ -176,7 +176,8 @@ def test_render_writes_channels_and_metadata(rendered):
     assert meta["camera"]["projection"] == "equisolid" and meta["camera"]["size"] == 24
     assert meta["camera"]["up_azimuth_deg"] == 30.0 and meta["camera"]["radius_px"] == 12.0
     assert meta["sun"] == {"zenith_deg": 50.0, "azimuth_deg": 120.0}
-    assert meta["integrator"]["name"] == "taylor"
+    assert meta["integrator"] == {"name": "gauss", "samples": 16}  # the render defaults (docs/accuracy.md)
+    assert (meta["rule"], meta["spacing"], meta["view_samples"]) == ("gauss", "geometric", 8)
     assert meta["atmosphere"]["name"] == "earth" and meta["atmosphere"]["mie_phase"] == "cornette_shanks"
     np.testing.assert_array_equal(meta["wavelengths_nm"], lam)
     assert meta["units"]["L<nm>"] == "W/(m^2 sr nm)"

@@ -93,3 +93,155 @@ def test_a_satisfied_bound_costs_nothing_and_a_violated_one_pulls():
     loss = problem.objective(xg)
     loss.backward()
     assert float(loss) > 0 and float(xg.grad[0]) < 0
+
+
+# -- the multiple-scattering factor on a few wavelengths; camera priors; lagged refreshes ---------------------
+def test_wavelength_nodes_spread_evenly_with_both_ends():
+    from skyfit.fit.photo import wavelength_nodes
+
+    np.testing.assert_array_equal(wavelength_nodes(16, 6), [0, 3, 6, 9, 12, 15])  # 400, 460, ..., 700 nm of 400:700:20
+    assert wavelength_nodes(16, None) is None and wavelength_nodes(6, 6) is None
+    with pytest.raises(ValueError, match="wavelength nodes must be >= 2"):
+        wavelength_nodes(16, 1)
+
+
+def test_interpolation_matrix_is_exact_for_a_line_and_bounded_for_a_parabola():
+    from skyfit.fit.photo import interpolation_matrix, wavelength_nodes
+
+    lam = torch.arange(400.0, 701.0, 20.0, dtype=torch.float64)
+    idx = wavelength_nodes(16, 6)
+    m = interpolation_matrix(lam, idx)
+    line = 3.0 - 0.002 * lam
+    torch.testing.assert_close(line[idx] @ m, line, rtol=0, atol=1e-12)
+    torch.testing.assert_close(m.sum(0), torch.ones(16, dtype=torch.float64), rtol=0, atol=1e-12)
+    quad = (lam / 100.0) ** 2
+    # linear interpolation error <= h^2/8 max|f''| (h = 60 nm, f'' = 2e-4 /nm^2): 0.09
+    err = (quad[idx] @ m - quad).abs()
+    assert float(err.max()) <= 60.0**2 / 8 * 2e-4 + 1e-12 and float(err.max()) > 0.05
+
+
+def test_atmosphere_at_equals_the_config_loaded_on_those_wavelengths():
+    from skyfit.fit.photo import atmosphere_at
+
+    lam = np.arange(400.0, 701.0, 20.0)
+    full = skyfit.load_atmosphere("earth", lam)
+    idx = np.array([0, 5, 15])
+    direct = skyfit.load_atmosphere("earth", lam[idx])
+    sub = atmosphere_at(full, idx)
+    for f in direct.tensor_fields():
+        torch.testing.assert_close(getattr(sub, f), getattr(direct, f), msg=f)
+
+
+def test_factor_on_six_nodes_matches_every_wavelength():
+    """The all-orders / first-order factor from tables on 6 of 16 wavelengths, interpolated, against the tables on
+    all 16 (small tables; the factor is smooth in wavelength)."""
+    from skyfit.fit.photo import multiple_from_tables, wavelength_nodes, atmosphere_at
+    from skyfit.fit.problem import fit_settings, prepare
+    from skyfit.scattering.bruneton_tables import TableSizes
+    from skyfit.scattering.multiple import precompute
+
+    cam, rgb = _rgb_sky(24)
+    obs = Observation.from_arrays(rgb, cam, sun=(40.0, 120.0), min_elevation_deg=5.0)
+    prep = prepare([obs], skyfit.atmosphere.read_config("earth")[0], fit_settings({}, {"free": ["exposure"]}))
+    problem = prep.fit_problem()
+    x = problem.param.initial_vector()
+    atm = problem.param.atmosphere(problem.param.to_physical(x))
+    sizes = TableSizes(32, 16, 16, 4, 8, 16, 8, 4)
+    idx = wavelength_nodes(int(atm.wavelengths.numel()), 6)
+    with torch.no_grad():
+        every = multiple_from_tables(problem, x, precompute(atm, orders=3, sizes=sizes, progress=False))[0]
+        nodes = multiple_from_tables(problem, x, precompute(atmosphere_at(atm, idx), orders=3, sizes=sizes, progress=False), idx)[0]
+    torch.testing.assert_close(nodes[:, idx], every[:, idx], rtol=1e-10, atol=0)  # the nodes themselves: same numbers
+    assert float(every.min()) > 1.0  # multiple scattering adds light
+    assert float((nodes / every - 1).abs().max()) < 0.01
+
+
+def test_factor_change_is_the_largest_relative_change():
+    from skyfit.fit.photo import factor_change
+
+    a = [torch.ones(3, 2), torch.full((2, 2), 2.0)]
+    b = [torch.ones(3, 2), torch.tensor([[2.0, 2.0], [2.0, 2.1]])]
+    assert factor_change(a, b) == pytest.approx(0.05)
+    assert factor_change(None, b) == float("inf")
+
+
+def _flat_ring_problem(v_true=-0.6):
+    """Blocks all at one image radius (0.8): the exposure and the vignetting are perfectly degenerate there."""
+    import dataclasses as dc
+
+    from skyfit.fit.problem import fit_settings, prepare
+
+    cam, rgb = _rgb_sky(32)
+    obs = Observation.from_arrays(rgb * 2.0 * (1 + v_true * 0.64), cam, sun=(55.0, 120.0), min_elevation_deg=5.0)
+    obs = dc.replace(obs, image_radius=torch.full_like(obs.image_radius, 0.8))
+    prep = prepare([obs], skyfit.atmosphere.read_config("earth")[0],
+                   fit_settings({}, {"free": ["exposure", "vignetting"], "initial": {"vignetting": v_true}}))
+    return prep.fit_problem()
+
+
+def test_camera_prior_is_the_gaussian_negative_log_prior_over_n_elements():
+    from skyfit.fit.photo import PhotoProblem, camera_priors
+
+    base = _flat_ring_problem()
+    priors = camera_priors(["exposure", "vignetting", "gain_red"])
+    assert set(priors) == {"vignetting", "gain_red"}  # only the free camera nuisances
+    prob = PhotoProblem.of(base, camera_priors(["vignetting"]))
+    x = base.param.initial_vector()
+    mean, sigma = skyfit.fit.photo.VIGNETTING_PRIOR
+    expected = 0.5 * ((-0.6 - mean) / sigma) ** 2 / base.n_elements
+    assert float(prob.objective(x) - base.objective(x)) == pytest.approx(expected, rel=1e-9)
+    with pytest.raises(ValueError, match="kind must be linear or log"):
+        PhotoProblem.of(base, {"vignetting": ("cubic", 0.0, 1.0)})
+
+
+def test_vignetting_prior_decides_what_the_data_cannot():
+    """Every block at one radius: without the prior the fit leaves v where it starts (-0.6), any v fits as well;
+    with it v goes to the prior's mean, and exposure x (1 + v r^2) still matches the data."""
+    from skyfit.fit.optimise import FitOptions, fit
+    from skyfit.fit.photo import PhotoProblem, camera_priors
+
+    base = _flat_ring_problem()
+    opts = FitOptions(starts=1, adam_steps=0, max_iter=60)
+    if hasattr(opts, "method"):  # the priors live in the objective: a gradient method (fit.photo does the same)
+        opts.method = "lbfgs"
+    free = fit(base, opts)
+    assert free.parameters["vignetting"] == pytest.approx(-0.6, abs=1e-3)
+    prob = PhotoProblem.of(_flat_ring_problem(), camera_priors(["vignetting"]))
+    res = fit(prob, opts)
+    v, e = res.parameters["vignetting"], res.parameters["exposure"]
+    assert v == pytest.approx(skyfit.fit.photo.VIGNETTING_PRIOR[0], abs=2e-3)
+    p = free.parameters
+    assert e * (1 + v * 0.64) == pytest.approx(p["exposure"] * (1 + p["vignetting"] * 0.64), rel=1e-5)
+
+
+def _scene_of(rgb, hi, lo):
+    from skyfit.fit.photo import PhotoScene
+    from skyfit.io.photo import LinearPhoto
+
+    h, w = rgb.shape[:2]
+    cam = FisheyeCamera((h, w), projection="equidistant", cx=(w - 1) / 2, cy=(h - 1) / 2, radius=10 * max(h, w))
+    none = np.zeros((h, w), bool)
+    photo = LinearPhoto(rgb, np.full(rgb.shape, 1e-6), hi, lo, ~none, rgb, hi.any(-1), "test", {})
+    return PhotoScene(photo, 30.0, 0.0, 1.0, "2024-06-01T12:00:00+00:00", {}, cam, [], None, None,
+                      {"outside": none, "horizon": none, "sun": none}, [], {})
+
+
+def test_blocks_with_some_saturated_pixels_are_lower_bounds_and_mixed_ones_are_left_out():
+    """A channel saturated in part of a block: its mean (clipped pixels at the clip level) is a lower bound on the
+    block's true mean, censored +1; partly black, or saturated and black in one block: neither bound holds."""
+    from skyfit.fit.photo import block_image
+
+    rgb = np.full((16, 16, 3), 0.5)
+    hi, lo = np.zeros((16, 16, 3), bool), np.zeros((16, 16, 3), bool)
+    hi[0:4, 0:4, 0] = True  # block (0, 0): red saturated everywhere
+    rgb[0:4, 0:4, 0] = 1.0
+    hi[0, 4, 0] = True  # block (0, 1): one red pixel saturated
+    rgb[0, 4, 0] = 1.0
+    lo[0, 8, 1] = True  # block (0, 2): one green pixel black
+    hi[4, 0, 0] = lo[4, 1, 1] = True  # block (1, 0): saturated red and black green
+    b = block_image(_scene_of(rgb, hi, lo), step=4)
+    assert b.censored[0, 0].tolist() == [1, 0, 0] and b.usable[0, 0]
+    assert b.censored[0, 1].tolist() == [1, 0, 0] and b.usable[0, 1]
+    assert b.rgb[0, 1, 0] == pytest.approx((15 * 0.5 + 1.0) / 16)  # the bound: the clipped pixel at its clip level
+    assert not b.usable[0, 2] and not b.usable[1, 0]
+    assert b.usable[0, 3] and b.censored[0, 3].tolist() == [0, 0, 0]  # an untouched block is a measurement

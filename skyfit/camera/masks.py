@@ -14,7 +14,7 @@ import torch
 from .autocal import CalibrationError, SunDetection
 from .fisheye import FisheyeCamera
 
-__all__ = ["grow_outlier_mask", "obstacle_mask", "sun_mask"]
+__all__ = ["SUN_MASK_MAX_DEG", "grow_outlier_mask", "obstacle_mask", "sun_mask"]
 
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
 """Linear sRGB to relative luminance Y (IEC 61966-2-1). [1]"""
@@ -24,6 +24,14 @@ SUN_HALO_MARGIN_DEG = 3.0
 within a few degrees (a power law past 0.5-2 deg), while the unsaturated aureole beyond it is the photo's best
 measure of the aerosol. (Twice the blob's radius, tried first, masked 20-40 deg around the sun of a hazy sky
 and left the aerosol to the horizon, where vignetting mimics it: docs/photos.md.) [deg]"""
+
+
+SUN_MASK_MAX_DEG = 8.0
+"""Largest angular radius of the sun mask of a photo fit (``max_radius_deg`` of :func:`sun_mask`): a single photo
+exposed for the sky saturates the aureole of a hazy sky 10-30 deg around the sun, and masking all of it (blob +
+margin) threw away its censored bounds and the unsaturated ring beyond; past 8 deg a lens's flare halo adds under
+1 % (the synthetic generator's power-law halo: 0.5 % at 8 deg on case 6), so the saturated pixels there are fitted
+as lower bounds. [deg]"""
 
 
 def _check_shape(shape, camera: FisheyeCamera) -> tuple[int, int]:
@@ -54,7 +62,7 @@ def _pixel_dir(camera: FisheyeCamera, x: float, y: float) -> np.ndarray | None:
 
 
 def sun_mask(shape, sun: SunDetection | None, camera: FisheyeCamera, sun_zenith_deg: float, sun_azimuth_deg: float,
-             *, min_radius_deg: float = 3.0) -> np.ndarray:
+             *, min_radius_deg: float = 3.0, max_radius_deg: float | None = None) -> np.ndarray:
     """The sun's disc and its flare halo, around both the detected and the computed sun.
 
     The angular radius of the saturated blob (the mean angle between the blob's centre and four points
@@ -69,6 +77,8 @@ def sun_mask(shape, sun: SunDetection | None, camera: FisheyeCamera, sun_zenith_
         camera: the camera fitted or guessed for the image.
         sun_zenith_deg, sun_azimuth_deg: computed sun position. [deg]
         min_radius_deg: smallest angular radius masked. [deg]
+        max_radius_deg: largest angular radius masked (None: no limit; :data:`SUN_MASK_MAX_DEG` in a photo fit,
+            which fits the saturated aureole beyond it as censored bounds). [deg]
 
     Returns:
         shape (H, W) bool, True = masked (only pixels in the camera's field of view).
@@ -76,6 +86,8 @@ def sun_mask(shape, sun: SunDetection | None, camera: FisheyeCamera, sun_zenith_
     _check_shape(shape, camera)
     if not min_radius_deg >= 0:
         raise CalibrationError(f"min_radius_deg must be >= 0, got {min_radius_deg}")
+    if max_radius_deg is not None and not max_radius_deg >= min_radius_deg:
+        raise CalibrationError(f"max_radius_deg must be >= min_radius_deg ({min_radius_deg}), got {max_radius_deg}")
     v, valid = _vectors(camera)
     centres = [_unit(sun_zenith_deg, sun_azimuth_deg)]
     radius = min_radius_deg
@@ -90,6 +102,8 @@ def sun_mask(shape, sun: SunDetection | None, camera: FisheyeCamera, sun_zenith_
                     angles.append(math.degrees(math.acos(min(1.0, float(d0 @ d1)))))
             if angles:
                 radius = max(radius, float(np.mean(angles)) + SUN_HALO_MARGIN_DEG)
+    if max_radius_deg is not None:
+        radius = min(radius, max_radius_deg)
     cos_r = math.cos(math.radians(radius))
     out = np.zeros(camera.shape, dtype=bool)
     for c in centres:

@@ -91,6 +91,60 @@ def derived_functions(problem: FitProblem):
     return out
 
 
+
+def covariance_from_hessian(H: Tensor) -> tuple[Tensor, bool, float]:
+    """(H^-1, positive definite, min eigenvalue) of a Hessian (P, P); the pseudo-inverse when not PD."""
+    H = H.to(torch.float64)
+    if not bool(torch.isfinite(H).all()):
+        raise FitError("Laplace: the Hessian at the fit is not finite")
+    evals = torch.linalg.eigvalsh(H)
+    pd = bool(evals.min() > 0)
+    cov_x = torch.cholesky_inverse(torch.linalg.cholesky(H)) if pd else torch.linalg.pinv(H, hermitian=True)
+    return 0.5 * (cov_x + cov_x.T), pd, float(evals.min())
+
+
+def covariance_summary(problem: FitProblem, x: Tensor, cov_x: Tensor, pd: bool = True) -> dict:
+    """sigma, intervals, correlation and derived sigmas of a covariance ``cov_x`` (P, P) of the unconstrained x.
+
+    The part of :func:`laplace_summary` after the Hessian, shared with the error budget
+    (:mod:`skyfit.fit.budget`), which passes its total covariance. Keys: ``names``, ``values``,
+    ``sigma`` (None where not ``pd`` or zero), ``sigma_unconstrained``, ``correlation``,
+    ``covariance`` (physical), ``covariance_unconstrained``, ``interval68``, ``interval95``, ``derived``.
+    """
+    x64 = x.detach().to(torch.float64)
+    cov_x = cov_x.to(torch.float64)
+    J = transform_jacobian(problem, x64)
+    cov_v = J[:, None] * cov_x * J[None, :]
+    s_x = torch.sqrt(torch.clamp_min(torch.diagonal(cov_x), 0.0))
+    s_v = torch.sqrt(torch.clamp_min(torch.diagonal(cov_v), 0.0))
+    d = torch.where(s_x > 0, s_x, torch.ones_like(s_x))
+    corr = cov_x / d[:, None] / d[None, :]
+    vals = physical_slot_values(problem, x64)
+    names = display_names(problem)
+    out = {
+        "names": names,
+        "values": {n: float(v) for n, v in zip(names, vals)},
+        # a variance the Hessian does not make positive is unknown, not zero
+        "sigma": {n: (float(s) if pd and float(s) > 0 else None) for n, s in zip(names, s_v)},
+        "sigma_unconstrained": {n: float(s) for n, s in zip(names, s_x)},
+        "correlation": corr.tolist(),
+        "covariance": cov_v.tolist(),
+        "covariance_unconstrained": cov_x.tolist(),
+    }
+    for key, z in (("interval68", Z68), ("interval95", Z95)):
+        lo = physical_slot_values(problem, x64 - z * s_x)
+        hi = physical_slot_values(problem, x64 + z * s_x)
+        out[key] = {n: [float(a), float(b)] for n, a, b in zip(names, lo, hi)}
+    derived = {}
+    for name, fn in derived_functions(problem).items():
+        xr = x64.clone().requires_grad_(True)
+        val = fn(xr)
+        (g,) = torch.autograd.grad(val, xr)
+        var = float(g @ cov_x @ g)
+        derived[name] = {"value": float(val.detach()), "sigma": math.sqrt(max(var, 0.0))}
+    out["derived"] = derived
+    return out
+
 def laplace_summary(problem: FitProblem, x: Tensor) -> dict:
     """The Laplace approximation at the fitted x: sigma and correlation per free parameter.
 
@@ -109,44 +163,9 @@ def laplace_summary(problem: FitProblem, x: Tensor) -> dict:
     """
     t0 = time.perf_counter()
     x = x.detach()
-    H = hessian_nll(problem, x).to(torch.float64)
-    if not bool(torch.isfinite(H).all()):
-        raise FitError("Laplace: the Hessian at the fit is not finite")
-    evals = torch.linalg.eigvalsh(H)
-    pd = bool(evals.min() > 0)
-    cov_x = torch.cholesky_inverse(torch.linalg.cholesky(H)) if pd else torch.linalg.pinv(H, hermitian=True)
-    cov_x = 0.5 * (cov_x + cov_x.T)
-    J = transform_jacobian(problem, x.to(torch.float64))
-    cov_v = J[:, None] * cov_x * J[None, :]
-    s_x = torch.sqrt(torch.clamp_min(torch.diagonal(cov_x), 0.0))
-    s_v = torch.sqrt(torch.clamp_min(torch.diagonal(cov_v), 0.0))
-    d = torch.where(s_x > 0, s_x, torch.ones_like(s_x))
-    corr = cov_x / d[:, None] / d[None, :]
-    vals = physical_slot_values(problem, x.to(torch.float64))
-    names = display_names(problem)
-    out = {
-        "names": names,
-        "values": {n: float(v) for n, v in zip(names, vals)},
-        # a variance the Hessian does not make positive is unknown, not zero
-        "sigma": {n: (float(s) if pd and float(s) > 0 else None) for n, s in zip(names, s_v)},
-        "sigma_unconstrained": {n: float(s) for n, s in zip(names, s_x)},
-        "correlation": corr.tolist(),
-        "covariance": cov_v.tolist(),
-        "covariance_unconstrained": cov_x.tolist(),
-        "positive_definite": pd,
-        "min_eigenvalue": float(evals.min()),
-    }
-    for key, z in (("interval68", Z68), ("interval95", Z95)):
-        lo = physical_slot_values(problem, (x.to(torch.float64) - z * s_x))
-        hi = physical_slot_values(problem, (x.to(torch.float64) + z * s_x))
-        out[key] = {n: [float(a), float(b)] for n, a, b in zip(names, lo, hi)}
-    derived = {}
-    for name, fn in derived_functions(problem).items():
-        xr = x.to(torch.float64).clone().requires_grad_(True)
-        val = fn(xr)
-        (g,) = torch.autograd.grad(val, xr)
-        var = float(g @ cov_x @ g)
-        derived[name] = {"value": float(val.detach()), "sigma": math.sqrt(max(var, 0.0))}
-    out["derived"] = derived
+    cov_x, pd, min_eig = covariance_from_hessian(hessian_nll(problem, x))
+    out = covariance_summary(problem, x, cov_x, pd)
+    out["positive_definite"] = pd
+    out["min_eigenvalue"] = min_eig
     out["seconds"] = time.perf_counter() - t0
     return out

@@ -69,6 +69,12 @@ class SkyModel:
     lut_directions: int = 64
     lut_samples: int = 20
     table_sizes: tuple[int, ...] | None = None
+    spacing: str = "uniform"
+    """Single scattering: view-ray nodes ``uniform`` in distance or ``geometric``
+    (:func:`skyfit.scattering.single.geometric_nodes`; :func:`skyfit.render`'s default)."""
+    lut_method: str = "cached"
+    """How Hillaire's LUT is evaluated (:data:`skyfit.scattering.hillaire.LUT_METHODS`; equal to 1e-12):
+    ``rows`` is the slower original, kept for before/after timings (scripts/kider_fit_speed.py)."""
 
     REDUCED_TABLES = (64, 16, 32, 8, 8, 32, 8, 4)
     """Bruneton table sizes for fits on a CPU (docs/fitting.md, "Multiple scattering")."""
@@ -92,7 +98,7 @@ class SkyModel:
             from ..scattering.hillaire import hillaire_lut
 
             return hillaire_lut(atm, size=self.lut_size, directions=self.lut_directions, samples=self.lut_samples,
-                                transmittance_sizes=TableSizes(transmittance_mu=64, transmittance_r=16))
+                                transmittance_sizes=TableSizes(transmittance_mu=64, transmittance_r=16), method=self.lut_method)
         from ..scattering.multiple import precompute
 
         sizes = TableSizes(*(self.table_sizes or self.REDUCED_TABLES))
@@ -124,12 +130,15 @@ class SkyModel:
             return render_vectors(
                 atm, directions, sun, self.integrator, altitude_m, self.orders, view_samples=self.view_samples,
                 rule=self.rule, ground=self.ground, chunk_bytes=self.chunk_bytes, column_fn=column_fn,
+                spacing=self.spacing,
             )
 
         return render
 
     def settings(self) -> dict:
         out = {"orders": self.orders, "view_samples": self.view_samples, "rule": self.rule, "ground": self.ground}
+        if self.orders == 1 and self.spacing != "uniform":
+            out["spacing"] = self.spacing
         if self.orders > 1:
             out["multiple"] = self.multiple
             if self.multiple == "hillaire":

@@ -43,7 +43,7 @@ import torch
 from ..atmosphere.constants import PRESSURE_SCALE_HEIGHT_M
 from ..camera.autocal import CalibrationError, cameras_from_sun, detect_circle, detect_sun
 from ..camera.fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, zenith_azimuth_to_enu
-from ..camera.masks import grow_outlier_mask, obstacle_mask, sun_mask
+from ..camera.masks import SUN_MASK_MAX_DEG, grow_outlier_mask, obstacle_mask, sun_mask
 from ..camera.sun import parse_location, parse_time, sun_position
 from ..io.photo import LinearPhoto, read_photo
 from .data import Observation
@@ -67,11 +67,14 @@ config's (a photo of unknown exposure and white balance hardly separates it from
 ``free=``); the aerosol's scale height stays at the config's (a ground photo sees the column, not its shape)."""
 CALIBRATED_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "sun_azimuth_offset")
 """Free parameters when the camera is given (``camera=``): its geometry, gains and vignetting are known."""
-PHOTO_TABLES = (128, 32, 32, 8, 12, 48, 16, 8)
+PHOTO_TABLES = (64, 32, 16, 8, 16, 64, 16, 8)
 """Bruneton table sizes of a photo fit's multiple-scattering factor (transmittance mu, r, irradiance mu_s, r,
-scattering r, mu, mu_s, nu). The fits' reduced tables (:attr:`SkyModel.REDUCED_TABLES`, 8 x 32 x 8 x 4) put
-the factor of a hazy sky (AOD 0.3, g 0.82) 10-70 % off, which biased the aerosol of synthetic photos by
--40 to -60 %; these differ from the synthetic generator's (256, 64, 32, 8, 16, 64, 16, 8) (docs/photos.md)."""
+scattering r, mu, mu_s, nu), built on :data:`MS_WAVELENGTH_NODES` wavelengths. What matters is the scattering
+tables' mu: on synthetic case 6 (AOD 0.3, g 0.82, sun at 23 deg) multiple over live single scattering at 30-60 deg
+elevation is 2.66 with 48 mu samples, 1.99 with 64, 1.62 with 96 (r, transmittance and irradiance sizes change it by
+< 1 %), so the earlier (128, 32, 32, 8, 12, 48, 16, 8) put the factor 20 % above the generator's and biased hazy
+skies low; these take the generator's scattering grid (its transmittance and irradiance are larger, its
+wavelengths 20, its single scattering from the tables) and share its error in mu (docs/photos.md, "Speed")."""
 PHOTO_SETTINGS = {"loss": "cauchy", "orders": 4, "multiple": "bruneton", "table_sizes": list(PHOTO_TABLES),
                   "starts": 1, "adam_steps": 30, "max_iter": 80,
                   "initial": {"mie_aod_550": 0.1, "mie_angstrom_alpha": 1.0, "mie_g": 0.7}}
@@ -296,7 +299,7 @@ def scene_masks(photo: LinearPhoto, cam: FisheyeCamera, detected, sun_zenith_deg
     valid = valid.numpy() & photo.valid
     up = np.where(valid, vec[..., 2].numpy(), -1.0)
     masks = {"outside": ~valid, "horizon": valid & (up <= math.sin(math.radians(2.0)))}
-    masks["sun"] = sun_mask((h, w), detected, cam, sun_zenith_deg, sun_azimuth_deg) & valid
+    masks["sun"] = sun_mask((h, w), detected, cam, sun_zenith_deg, sun_azimuth_deg, max_radius_deg=SUN_MASK_MAX_DEG) & valid
     rgb = np.where(np.isfinite(photo.rgb), photo.rgb, 0.0)
     masks["obstacles"] = obstacle_mask(rgb, valid & ~masks["sun"], cam) & valid
     if user is not None:
@@ -317,7 +320,8 @@ class BlockImage:
         camera: the fisheye camera of the block image (centre and radius scaled by 1/step).
         rgb: block means, (h, w, 3); variance: their variance, (h, w, 3).
         usable: (h, w) bool: every pixel of the block is sky and inside the view, none censored.
-        censored: (h, w, 3) int8: +1 every pixel of the block saturated in that channel, -1 all black, else 0.
+        censored: (h, w, 3) int8: +1 some pixel of the block saturated in that channel (its mean is a lower bound),
+            -1 all black, else 0.
         sky: (h, w) bool: every pixel of the block is sky and inside the view (censored or not).
         candidate: (h, w) bool: inside the view, above the horizon, off the sun (obstacle tests aside).
     """
@@ -375,10 +379,14 @@ def block_image(scene: PhotoScene, step: int | None = None, exclude: np.ndarray 
     var = np.where(np.isfinite(ph.variance), ph.variance, 0.0)
     bvar = _blocks(var, step, h, w).sum(2) / float(step * step) ** 2
     cens = np.zeros((h, w, 3), np.int8)
-    cens[hi.all(2)] = 1
+    # a channel with saturated pixels is a lower bound on the block's mean (its clipped pixels hold the clip level,
+    # below their truth); one all black an upper bound; the ring of partly saturated blocks around a saturated
+    # aureole is kept so, since just outside the saturation is where the photo measures the aerosol best
+    hi_any, lo_any = hi.any(2), lo.any(2)
+    cens[hi_any] = 1
     cens[lo.all(2)] = -1
-    # a block fully censored in a channel but measured in the others is kept as a bound; partly censored: left out
-    bound = sky & ~usable & ((cens != 0) | ~(hi | lo).any(2)).all(-1)
+    mixed = (hi_any & lo_any) | (lo_any & ~lo.all(2))  # both kinds, or partly black: neither bound holds
+    bound = sky & ~usable & ~mixed.any(-1)
     usable_or_bound = usable | bound
     return BlockImage(step, scaled_camera(cam, step, (h, w)), vals, bvar, usable_or_bound, cens, sky, cand)
 
@@ -419,6 +427,64 @@ def block_observation(scene: PhotoScene, blocks: BlockImage, use: np.ndarray, *,
 
 
 # -- the fit ---------------------------------------------------------------------------------------
+VIGNETTING_PRIOR = (-0.15, 0.15)
+"""Prior of the fall-off v of the relative illumination 1 + v r^2 (r = 1 at 90 deg from the axis): Gaussian,
+mean and sigma. Real circular fisheyes lose 0-1 EV at 90 deg (0-50 %; a lens does not brighten toward its rim),
+so v in [-0.45, 0.15] at 2 sigma; without it an unknown exposure, white balance and vignetting let a single photo
+trade the aerosol's horizon brightening for fall-off (synthetic case 6: v -0.55, AOD -62 %). [1]"""
+GAIN_PRIOR_LOG_SIGMA = 0.15
+"""Prior of the white-balance gains (red, blue over green) relative to linear sRGB of the CIE observer: log-normal
+about 1 with this sigma. A camera on a daylight preset or auto white balance under a daylight sky renders a sunlit
+grey near grey (the three published cameras of the synthetic generator on daylight: gains 0.87-1.08); the gains
+otherwise trade against the aerosol's whitening of the sky, which a photo's colour measures. [1]"""
+
+
+def camera_priors(free: Sequence[str]) -> dict:
+    """The camera's priors for the free names among ``vignetting``, ``gain_red``, ``gain_blue``:
+    name -> (kind, mean, sigma), kind ``linear`` (on the value) or ``log`` (on its logarithm)."""
+    table = {"vignetting": ("linear",) + VIGNETTING_PRIOR, "gain_red": ("log", 0.0, GAIN_PRIOR_LOG_SIGMA),
+             "gain_blue": ("log", 0.0, GAIN_PRIOR_LOG_SIGMA)}
+    return {n: table[n] for n in free if n in table}
+
+
+class PhotoProblem(FitProblem):
+    """A photo's :class:`FitProblem` with Gaussian priors on camera nuisances (:func:`camera_priors`).
+
+    The objective (the mean loss per element) adds sum 0.5 ((f(v) - mean) / sigma)^2 / n_elements over the
+    priors, f the identity or log: the negative log prior on the scale of the loss (which is a negative
+    log-likelihood, Cauchy or squared), so the Laplace covariance is the posterior's.
+    """
+
+    priors: dict = {}
+
+    @classmethod
+    def of(cls, problem: FitProblem, priors: dict) -> "PhotoProblem":
+        """The same problem (shared observations, parameterisation and model) with ``priors``."""
+        out = cls.__new__(cls)
+        out.__dict__.update(problem.__dict__)
+        for n, (kind, _, sigma) in priors.items():
+            if kind not in ("linear", "log") or not sigma > 0:
+                raise ValueError(f"prior of {n}: kind must be linear or log and sigma > 0, got {kind!r}, {sigma}")
+        out.priors = dict(priors)
+        return out
+
+    def prior_penalty(self, phys: dict) -> torch.Tensor:
+        """Negative log prior of the camera's nuisances (up to a constant), shape (). [1]"""
+        total = None
+        for n, (kind, mean, sigma) in self.priors.items():
+            v = phys[n]
+            z = ((torch.log(v) if kind == "log" else v) - mean) / sigma
+            term = 0.5 * (z * z).sum()
+            total = term if total is None else total + term
+        return total
+
+    def loss_from_predictions(self, preds, phys: dict) -> torch.Tensor:
+        loss = super().loss_from_predictions(preds, phys)
+        if self.priors:
+            loss = loss + self.prior_penalty(phys) / max(self.n_elements, 1)
+        return loss
+
+
 @dataclasses.dataclass
 class PhotoFit:
     """A photo fit's outcome: RESULT.json's content, the problem and vector, and the images of its report."""
@@ -502,7 +568,10 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         response = read_sensitivities(camera_meta["spectral_sensitivities"])
     timings = dict(scene.seconds)
 
-    def run(sc: PhotoScene, exclude=None, start=None, settings=s, target=TARGET_SAMPLES, refreshes=MS_REFRESHES):
+    shared: dict = {}  # Bruneton tables at the starting atmosphere, shared by the short fits (camera-independent)
+
+    def run(sc: PhotoScene, exclude=None, start=None, settings=s, target=TARGET_SAMPLES, refreshes=MS_REFRESHES,
+            tables=None, refresh_last=True):
         blocks = block_image(sc, exclude=exclude, target=target)
         obs = block_observation(sc, blocks, blocks.usable, sigma_relative=settings.sigma_relative
                                 if "sigma_relative" in (overrides or {}) else SIGMA_RELATIVE, response=response)
@@ -512,8 +581,23 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
             bruneton = make_model(settings)
             settings = dataclasses.replace(settings, orders=1)
         prep = prepare([obs], config, settings, device=device)
-        problem = prep.problem(settings.free, settings.per_observation, {**settings.initial, **(start or {})})
-        return blocks, prep, problem, lagged_fit(problem, settings.options(progress), refreshes, bruneton=bruneton)
+        problem = PhotoProblem.of(prep.problem(settings.free, settings.per_observation, {**settings.initial, **(start or {})}),
+                                  camera_priors(settings.free))
+        options = settings.options(progress)
+        if problem.priors and getattr(options, "method", None) not in (None, "lbfgs"):
+            options = dataclasses.replace(options, method="lbfgs")  # the priors live in the objective, not in residuals
+        res = lagged_fit(problem, options, refreshes, bruneton=bruneton, tables=tables, refresh_last=refresh_last)
+        shared["builds"] = shared.get("builds", 0) + getattr(problem, "table_builds", 0)
+        return blocks, prep, problem, res
+
+    def quick_run(sc: PhotoScene, start=None):
+        """A short fit scored by its loss; the tables at the config's starting atmosphere are built once."""
+        quick = dataclasses.replace(s, max_iter=min(s.max_iter, 25), adam_steps=min(s.adam_steps, 15))
+        out = run(sc, start=start, settings=quick, target=QUICK_SAMPLES, refreshes=1, tables=shared.get("tables"),
+                  refresh_last=False)
+        if "tables" not in shared and getattr(out[2], "bruneton", None) is not None:
+            shared["tables"] = out[2].bruneton[1:]
+        return out[3]
 
     # the projection by evidence: candidates the sun alone cannot tell apart are fitted and scored by their loss
     if scene.candidates and choose_projection:
@@ -522,14 +606,12 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         vague = scene.detected_sun is None or getattr(scene.detected_sun, "extended", False)
         close = [c for c in scene.candidates if vague or c.score - best.score < 1.0]
         if len(close) > 1:
-            quick = dataclasses.replace(s, max_iter=min(s.max_iter, 25), adam_steps=min(s.adam_steps, 15))
             scores = []
             for c in close:
                 sc = dataclasses.replace(scene, camera=c.camera, masks=scene_masks(scene.photo, c.camera, scene.detected_sun,
                                                                                     scene.sun_zenith_deg, scene.sun_azimuth_deg,
                                                                                     scene.masks.get("user")))
-                _, _, _, r = run(sc, settings=quick, target=QUICK_SAMPLES, refreshes=1)
-                scores.append(r.loss)
+                scores.append(quick_run(sc).loss)
             k = int(np.argmin(scores))
             scene.notes.append("projection chosen by the fit's loss among " + ", ".join(
                 f"{c.projection} {v:.4g}" for c, v in zip(close, scores)))
@@ -544,11 +626,9 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     # heading from the sky pattern when the sun is not seen: several starting headings, the best loss wins
     start = None
     if scene.detected_sun is None and "sun_azimuth_offset" in s.free and not calibrated:
-        quick = dataclasses.replace(s, max_iter=min(s.max_iter, 25), adam_steps=min(s.adam_steps, 15))
         tries = []
         for deg in (0.0, 90.0, 180.0, 270.0):
-            _, _, _, r = run(scene, start={"sun_azimuth_offset": math.radians(deg)}, settings=quick, target=QUICK_SAMPLES, refreshes=1)
-            tries.append((r.loss, deg))
+            tries.append((quick_run(scene, start={"sun_azimuth_offset": math.radians(deg)}).loss, deg))
         start = {"sun_azimuth_offset": math.radians(min(tries)[1])}
     t1 = _now()
     blocks, prep, problem, res = run(scene, start=start)
@@ -564,13 +644,16 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         if grown.any():
             scene.masks["outliers"] = grown & ~scene.excluded
             start2 = {n: v for n, v in problem.param.physical_dict(res.x).items() if n in s.free}
+            # the first pass's last tables are at start2: no build before the second pass's first fit
+            last = problem.bruneton[1:] if getattr(problem, "bruneton", None) is not None else None
             blocks, prep, problem, res = run(scene, start=start2, settings=dataclasses.replace(s, adam_steps=0, starts=1),
-                                             refreshes=2)
+                                             refreshes=1, tables=last)
         timings["fit_pass2"] = _now() - t2
     t3 = _now()
     result = photo_result(scene, blocks, prep, problem, res, config, laplace=laplace)
     timings["report"] = _now() - t3
     result["seconds_split"] = {k: round(v, 3) for k, v in timings.items()}
+    result["convergence"]["ms_table_builds"] = shared.get("builds", 0)  # every Bruneton build of this photo's fits
     result["seconds"] = sum(timings.values())
     model_rgb = predict_blocks(problem, res.x, blocks, scene, blocks.sky | blocks.candidate)
     return PhotoFit(result, problem, res.x, scene, blocks, blocks.usable, model_rgb,
@@ -591,13 +674,67 @@ def _start_at(problem: FitProblem, x: torch.Tensor) -> None:
         problem.param.set_value(n, v)
 
 
-def freeze_tables(problem: FitProblem, x: torch.Tensor, bruneton: "SkyModel | None" = None) -> None:
+MS_WAVELENGTH_NODES = 6
+"""Bruneton's tables of a photo fit are built on this many of the model's wavelengths (evenly spread, the ends
+included) and the factor all orders / first order is interpolated linearly in wavelength between them: a table
+build costs about proportionally to the number of wavelengths, and the factor is smooth in wavelength (on synthetic
+case 6, 6 of 16 wavelengths change it by < 0.1 % rms: docs/photos.md, "Speed"). None: every wavelength."""
+
+
+MS_ANCHOR = "live"
+"""What the tables' multiple scattering is a factor on: ``live`` (1 + orders >= 2 of the tables / the fit's live
+single scattering: the sky is live single scattering plus the tables' multiple part) or ``tables`` (all orders /
+first order, both from the tables). Bruneton's single-scattering table differs from the live Chapman integral by
++6 % at the zenith to +29 % at 2-10 deg elevation (synthetic case 6, at every table size: its integration, not its
+resolution); ``tables`` scales the multiple part by that ratio, ``live`` adds it as the tables give it."""
+
+
+def wavelength_nodes(n_wavelengths: int, nodes: int | None = MS_WAVELENGTH_NODES) -> np.ndarray | None:
+    """Indices of ``nodes`` wavelengths evenly spread over a grid of ``n_wavelengths``, the ends included;
+    None when that would be every wavelength."""
+    if nodes is None or nodes >= n_wavelengths:
+        return None
+    if nodes < 2:
+        raise ValueError(f"wavelength nodes must be >= 2 (the ends of the grid), got {nodes}")
+    return np.unique(np.round(np.linspace(0, n_wavelengths - 1, nodes)).astype(int))
+
+
+def atmosphere_at(atm, index: np.ndarray):
+    """The atmosphere on the wavelengths ``atm.wavelengths[index]`` (every spectral field sliced alike)."""
+    n = int(atm.wavelengths.numel())
+    idx = torch.as_tensor(index, dtype=torch.long, device=atm.device)
+    changes = {}
+    for f in atm.tensor_fields():
+        v = getattr(atm, f)
+        if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == n and f != "ozone_layer_m":
+            changes[f] = v.index_select(0, idx)
+    return atm.replace(**changes)
+
+
+def interpolation_matrix(wavelengths: torch.Tensor, index: np.ndarray) -> torch.Tensor:
+    """(K, W) weights that carry values on ``wavelengths[index]`` (K nodes, increasing) to every wavelength
+    (W) by linear interpolation in wavelength."""
+    lam = wavelengths.detach()
+    nodes = lam[torch.as_tensor(index, dtype=torch.long, device=lam.device)]
+    k = torch.searchsorted(nodes, lam.contiguous()).clamp(1, len(index) - 1)
+    lo, hi = nodes[k - 1], nodes[k]
+    t = ((lam - lo) / (hi - lo)).clamp(0.0, 1.0)
+    m = torch.zeros(len(index), lam.numel(), dtype=lam.dtype, device=lam.device)
+    cols = torch.arange(lam.numel(), device=lam.device)
+    m[k - 1, cols] += 1.0 - t
+    m[k, cols] += t
+    return m
+
+
+def freeze_tables(problem: FitProblem, x: torch.Tensor, bruneton: "SkyModel | None" = None,
+                  wavelength_nodes_count: int | None = MS_WAVELENGTH_NODES) -> None:
     """Multiple scattering at ``x`` (no gradient), used until refreshed.
 
     With ``bruneton`` (a SkyModel with ``multiple="bruneton"``; the problem's own model renders single
-    scattering): Bruneton's tables are precomputed for the atmosphere at ``x`` and each observation's factor of
-    multiple scattering (:func:`multiple_from_tables`) is held in ``problem.frozen_factor``. Otherwise the problem's own multiple-scattering
-    tables (Hillaire's LUT) are frozen."""
+    scattering): Bruneton's tables are precomputed for the atmosphere at ``x`` on ``wavelength_nodes_count``
+    of its wavelengths (:data:`MS_WAVELENGTH_NODES`; None: all) and each observation's factor of multiple
+    scattering (:func:`multiple_from_tables`) is held in ``problem.frozen_factor``. Otherwise the problem's own
+    multiple-scattering tables (Hillaire's LUT) are frozen."""
     problem.frozen_tables = None
     if bruneton is not None:
         from ..scattering.bruneton_tables import TableSizes
@@ -606,19 +743,24 @@ def freeze_tables(problem: FitProblem, x: torch.Tensor, bruneton: "SkyModel | No
         with torch.no_grad():
             phys = problem.param.to_physical(x)
             atm = problem.param.atmosphere(phys)
-            tables = precompute(atm, orders=bruneton.orders, sizes=TableSizes(*(bruneton.table_sizes or bruneton.REDUCED_TABLES)),
-                                progress=False)
-        problem.bruneton = (bruneton, tables)
-        problem.frozen_factor = multiple_from_tables(problem, x, tables)
+            nodes = wavelength_nodes(int(atm.wavelengths.numel()), wavelength_nodes_count)
+            tables = precompute(atm if nodes is None else atmosphere_at(atm, nodes), orders=bruneton.orders,
+                                sizes=TableSizes(*(bruneton.table_sizes or bruneton.REDUCED_TABLES)), progress=False)
+        problem.bruneton = (bruneton, tables, nodes)
+        problem.frozen_factor = multiple_from_tables(problem, x, tables, nodes)
+        problem.table_builds = getattr(problem, "table_builds", 0) + 1
         return
     if problem.model.orders > 1:
         with torch.no_grad():
             problem.frozen_tables = problem.model.tables(problem.param.atmosphere(problem.param.to_physical(x)))
 
 
-def multiple_from_tables(problem: FitProblem, x: torch.Tensor, tables) -> list[torch.Tensor]:
+def multiple_from_tables(problem: FitProblem, x: torch.Tensor, tables, nodes: np.ndarray | None = None) -> list[torch.Tensor]:
     """Each observation's factor of multiple scattering from Bruneton ``tables``, (N_i, W): all orders over the
     first, both looked up in the same tables so that their error in single scattering cancels. [1]
+
+    ``nodes``: the tables are on ``atm.wavelengths[nodes]`` (:func:`wavelength_nodes`); the factor is interpolated
+    linearly in wavelength to every model wavelength.
 
     A factor rather than the added radiance: multiple scattering grows with the scattering much as single
     scattering does, so the ratio moves little while a fit moves the aerosol; the added radiance held fixed made
@@ -630,17 +772,47 @@ def multiple_from_tables(problem: FitProblem, x: torch.Tensor, tables) -> list[t
     with torch.no_grad():
         phys = problem.param.to_physical(x)
         atm = problem.param.atmosphere(phys)
+        sub = atm if nodes is None else atmosphere_at(atm, nodes)
+        interp = None if nodes is None else interpolation_matrix(atm.wavelengths, nodes)
+        live = None
+        if MS_ANCHOR == "live":  # the problem's own single scattering at x (no factor), per observation (N_i, W)
+            held, problem.frozen_factor = problem.frozen_factor, None
+            try:
+                live = [sp / sc for sp, sc in zip(problem.spectra(phys, atm), problem.solar_scale)]
+            finally:
+                problem.frozen_factor = held
         for i, o in enumerate(problem.observations):
             r, mu, mu_s, nu = ray_parameters(atm, problem.view_directions(phys, i), problem.sun_vectors(phys, i), o.altitude_m)
-            every = sky_radiance(tables, atm, r, mu, mu_s, nu, below_mu_s_min="clamp")
-            first = sky_radiance(tables, atm, r, mu, mu_s, nu, orders=1, below_mu_s_min="clamp")
-            ok = first > 1e-12 * first.abs().max()
-            out.append(torch.where(ok, every / torch.where(ok, first, torch.ones_like(first)), torch.ones_like(first)))
+            every = sky_radiance(tables, sub, r, mu, mu_s, nu, below_mu_s_min="clamp")
+            first = sky_radiance(tables, sub, r, mu, mu_s, nu, orders=1, below_mu_s_min="clamp")
+            if MS_ANCHOR == "live":  # orders >= 2 of the tables over the live single scattering
+                single = live[i] if nodes is None else live[i][:, torch.as_tensor(nodes, device=live[i].device)]
+                ok = single > 1e-12 * single.abs().max()
+                f = 1.0 + torch.where(ok, (every - first) / torch.where(ok, single, torch.ones_like(single)),
+                                      torch.zeros_like(single))
+            else:
+                ok = first > 1e-12 * first.abs().max()
+                f = torch.where(ok, every / torch.where(ok, first, torch.ones_like(first)), torch.ones_like(first))
+            out.append(f if interp is None else f @ interp)
     return out
 
 
+FACTOR_TOL = 0.01
+"""The refreshes of :func:`lagged_fit` stop when the multiple-scattering factor rebuilt at a fit's result differs
+from the one that fit used by less than this anywhere (largest relative change over samples and wavelengths): a
+third of :data:`SIGMA_RELATIVE`, a block's relative error. [1]"""
+
+
+def factor_change(old: list[torch.Tensor] | None, new: list[torch.Tensor] | None) -> float:
+    """Largest relative change between two lists of multiple-scattering factors (inf when either is missing). [1]"""
+    if not old or not new:
+        return math.inf
+    return max(float((n / o - 1.0).abs().max()) for o, n in zip(old, new))
+
+
 def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol: float = 1e-3,
-               bruneton: "SkyModel | None" = None):
+               bruneton: "SkyModel | None" = None, *, factor_tol: float = FACTOR_TOL, tables=None,
+               refresh_last: bool = True):
     """Fit with multiple scattering frozen, refreshed at each fit's result until the values settle.
 
     Single scattering, the scattering coefficients and the transmittances stay live and differentiable; the
@@ -654,24 +826,40 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
     * else the problem's own tables (Hillaire's Psi_ms: sigma_s(y) Psi_ms(h, mu_s) E_sun keeps sigma_s live).
 
     Rebuilding and differentiating the tables per evaluation would cost several times a single-scattering
-    evaluation of a photo's blocks. The values are left at the final ones, so metrics and Laplace see the fitted
-    model (the Laplace Hessian omits the multiple part's own dependence on the parameters). ``tol``: largest
-    change of an unconstrained value that ends the refreshes.
+    evaluation of a photo's blocks. The refreshes stop when a fit moves no unconstrained value by more than
+    ``tol``, or when the factor rebuilt at its result differs from the one it used by less than ``factor_tol``
+    (:data:`FACTOR_TOL`; the fit would not move), or after ``refreshes`` fits. The factor is left at the final
+    values, so metrics and Laplace see the fitted model (the Laplace Hessian omits the multiple part's own
+    dependence on the parameters). ``tables``: Bruneton tables ``(tables, wavelength nodes)`` already built near
+    the starting point (a second pass starting at the first's result), used for the first fit instead of a build.
+    ``refresh_last=False`` skips the build after the last fit (short fits scored by their loss alone).
     """
     x = problem.param.initial_vector(problem.param.base.dtype, problem.param.base.device)
-    freeze_tables(problem, x, bruneton)
+    if bruneton is not None and tables is not None:
+        problem.bruneton = (bruneton, tables[0], tables[1])
+        problem.frozen_factor = multiple_from_tables(problem, x, tables[0], tables[1])
+    else:
+        freeze_tables(problem, x, bruneton)
     _start_at(problem, problem.profile_exposure(x))
-    res = None
+    res, k, change = None, 0, math.inf
     for k in range(max(1, refreshes)):
         res = optimise(problem, options)
         moved = float((res.x - x).abs().max())
         x = res.x.detach()
+        if not refresh_last and k == max(1, refreshes) - 1:
+            break
+        used = problem.frozen_factor
         freeze_tables(problem, x, bruneton)
-        if (problem.model.orders == 1 and bruneton is None) or (k > 0 and moved < tol):
+        if problem.model.orders == 1 and bruneton is None:
+            break
+        change = factor_change(used, problem.frozen_factor)
+        if (k > 0 and moved < tol) or change < factor_tol:
             break
         _start_at(problem, x)
         options = dataclasses.replace(options, adam_steps=0, starts=1)  # near the optimum: L-BFGS alone
     res.convergence["ms_refreshes"] = k + 1
+    res.convergence["ms_factor_change"] = change
+    res.convergence["ms_table_builds"] = getattr(problem, "table_builds", 0)
     return res
 
 
@@ -704,7 +892,7 @@ def predict_blocks(problem, x: torch.Tensor, blocks: BlockImage, scene: PhotoSce
     other = FitProblem(problem.param, problem.model, [obs], problem.loss, base_sun_distance_au=base_sun_distance(problem))
     other.frozen_tables = problem.frozen_tables
     if getattr(problem, "bruneton", None) is not None:
-        other.frozen_factor = multiple_from_tables(other, x, problem.bruneton[1])
+        other.frozen_factor = multiple_from_tables(other, x, problem.bruneton[1], problem.bruneton[2])
     with torch.no_grad():
         pred = other.predict(x)[0].cpu().numpy()
     out = np.full(blocks.rgb.shape, np.nan)
@@ -867,7 +1055,7 @@ def report_png(pf: PhotoFit, path: str | Path) -> Path:
 
 
 __all__ = [
-    "BlockImage", "CALIBRATED_FREE", "PHOTO_FREE", "PHOTO_SETTINGS", "PhotoFit", "PhotoFitError", "PhotoScene",
+    "BlockImage", "CALIBRATED_FREE", "GAIN_PRIOR_LOG_SIGMA", "PHOTO_FREE", "PhotoProblem", "VIGNETTING_PRIOR", "camera_priors", "PHOTO_SETTINGS", "PhotoFit", "PhotoFitError", "PhotoScene",
     "block_image", "block_observation", "camera_from_dict", "camera_from_result", "fit_photo", "fit_scene",
     "fitted_camera", "prepare_scene", "read_camera", "read_sensitivities", "report_png", "scaled_camera", "scene_masks",
 ]

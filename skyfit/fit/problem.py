@@ -24,7 +24,7 @@ from ..transmittance import integrator_from_spec
 from .data import Observation, check_noise_model, expand_data_paths, noise_sigma, observation_from_exr, observation_from_kider
 from .losses import Loss, make_loss
 from .model import FitProblem, SkyModel
-from .optimise import FitOptions
+from .optimise import METHODS, FitOptions
 from .parameters import NUISANCE, FitError, Parameterisation, check_names
 
 DEFAULT_FREE = ("rayleigh_scale", "mie_beta_550", "mie_scale_height", "mie_g", "exposure")
@@ -40,7 +40,7 @@ DTYPES = {"float32": torch.float32, "float64": torch.float64}
 class FitSettings:
     """What a fit does; each field may be set in the config's ``fit:`` section, by a flag or a keyword.
 
-    The renderer defaults differ from ``skyfit render``'s (taylor, trapezoid, 32): a fit turns
+    The renderer defaults differ from ``skyfit render``'s former ones (taylor, trapezoid, 32): a fit turns
     model error into parameter bias: on a 1 % noise sky Taylor's optical depth biased the
     aerosol scale height by +145 %, a 32-sample trapezoid view integral by -23 %, while Chapman
     with a 16-node Gauss-Legendre view integral recovered it to 0.3-7 % at lower cost
@@ -66,6 +66,8 @@ class FitSettings:
     max_iter: int = FitOptions.max_iter
     grad_tol: float = FitOptions.grad_tol
     rel_tol: float = FitOptions.rel_tol
+    optimiser: str = FitOptions.method
+    """``auto`` (Levenberg-Marquardt for squared losses, else L-BFGS), ``lm`` or ``lbfgs`` (skyfit.fit.optimise)."""
     wavelengths: str | None = None
     min_elevation_deg: float = 0.0
     sun_mask_deg: float = 2.0
@@ -80,6 +82,15 @@ class FitSettings:
     """``--select``: ``scaled`` (sigma known up to a common factor, profiled) or ``known`` (skyfit.fit.select)."""
     select_heldout: float = 0.2
     """``--select``: fraction of the samples held out of the ladder's fits and scored afterwards."""
+    sigma: str = "total"
+    """``--laplace``'s sigma: ``total`` (noise + numerical model error + discrepancy floor, skyfit.fit.budget)
+    or ``noise`` (the Hessian of the noise alone); docs/uncertainty.md, "Honest sigma under model error"."""
+    sigma_reference: list[int] | None = None
+    """The numerical term's reference for orders >= 2: Bruneton table sizes and orders [R, MU, MU_S, NU, ORDERS]
+    (None: the trade study's 16, 64, 16, 8 with 6 orders, skyfit.fit.budget.REFERENCE_TABLES)."""
+    sigma_refits: int = 3
+    """The numerical term: lagged refits with the reference (at most this many) where the Newton step is
+    not linear (skyfit.fit.budget.NONLINEAR); 0: always the Newton step."""
     accuracy: str | None = None
     """``auto`` (= ``noise``: relative model error <= 1/3 of the data's median relative sigma), ``de=X`` or
     ``rel=X``: replaces integrator, view_samples, rule (and the multiple-scattering fields for orders >= 2)
@@ -97,7 +108,7 @@ class FitSettings:
     def options(self, progress: bool = False) -> FitOptions:
         """The optimiser's options of these settings."""
         return FitOptions(starts=self.starts, seed=self.seed, adam_steps=self.adam_steps, max_iter=self.max_iter,
-                          grad_tol=self.grad_tol, rel_tol=self.rel_tol, progress=progress)
+                          grad_tol=self.grad_tol, rel_tol=self.rel_tol, progress=progress, method=self.optimiser)
 
 
 FIT_SECTION_KEYS = frozenset(f.name for f in dataclasses.fields(FitSettings))
@@ -113,11 +124,13 @@ SETTING_RANGES: dict[str, tuple[str, float, float, str]] = {
     "grad_tol": ("float", 0, _INF, "()"), "rel_tol": ("float", 0, _INF, "()"),
     "min_elevation_deg": ("float", -90, 90, "[)"), "sun_mask_deg": ("float", 0, 180, "[)"),
     "saturation": ("float", 0, _INF, "()"), "sigma_relative": ("float", 0, _INF, "[)"),
-    "bin_nm": ("float", 0, _INF, "()"), "select_heldout": ("float", 0, 1, "[)"),
+    "bin_nm": ("float", 0, _INF, "()"), "select_heldout": ("float", 0, 1, "[)"), "sigma_refits": ("int", 0, _INF, "[)"),
 }
 """Type and range of the numeric fit settings, checked with the setting's name and where it came from
 before any work (docs/reliability.md)."""
-_CHOICES = {"multiple": ("hillaire", "bruneton"), "select_sigma": ("scaled", "known"), "dtype": tuple(DTYPES)}
+_CHOICES = {"multiple": ("hillaire", "bruneton"), "select_sigma": ("scaled", "known"), "dtype": tuple(DTYPES),
+            "optimiser": METHODS,
+            "sigma": ("total", "noise")}
 _STRINGS = ("loss", "integrator", "rule", "wavelengths", "accuracy")
 
 
@@ -207,6 +220,9 @@ def fit_settings(section: dict | None, overrides: dict | None = None, where: str
         raise FitError(f"max_samples must be >= 1, got {s.max_samples}")
     if s.spectral_noise is not None and (not isinstance(s.spectral_noise, (list, tuple)) or len(s.spectral_noise) != 2):
         raise FitError(f"fit.spectral_noise must be [relative, absolute], got {s.spectral_noise!r}")
+    if s.sigma_reference is not None and (not isinstance(s.sigma_reference, (list, tuple)) or len(s.sigma_reference) != 5
+                                          or not all(isinstance(v, int) and v >= 2 for v in s.sigma_reference)):
+        raise FitError(f"fit.sigma_reference must be [R, MU, MU_S, NU, ORDERS], integers >= 2, got {s.sigma_reference!r}")
     if s.dtype not in DTYPES:
         raise FitError(f"dtype must be float32 or float64, got {s.dtype!r}")
     return s

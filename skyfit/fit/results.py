@@ -17,9 +17,9 @@ import torch
 
 from ..atmosphere import Atmosphere
 from ..transmittance import integrator_from_spec
-from .laplace import laplace_summary
+from .budget import ReferenceModel, uncertainty
 from .model import FitProblem, SkyModel
-from .optimise import OptimiseResult
+from .optimise import FitOptions, OptimiseResult
 from .parameters import PARAMETERS, FitError, Parameterisation
 from .problem import RUN_SECTIONS, base_atmosphere
 from .report import dumps, plot_all, write_text_atomic
@@ -31,7 +31,9 @@ REQUIRED_RESULT_KEYS = ("parameters", "free", "integrator", "config", "model")
 def result_dict(problem: FitProblem, res: OptimiseResult, *, command: str, settings: dict, config: dict,
                 config_source: str, base_dist: float, dtype: str, seconds: float, laplace: bool = False,
                 extra: dict | None = None) -> dict:
-    """RESULT.json's content for a finished fit (CONTRACT.md), with the Laplace covariance when asked."""
+    """RESULT.json's content for a finished fit (CONTRACT.md), with the Laplace covariance when asked: its
+    ``sigma`` is the total of noise, numerical model error and discrepancy unless ``settings["sigma"]`` is
+    ``"noise"`` (:func:`skyfit.fit.budget.uncertainty`)."""
     param, model = problem.param, problem.model
     phys = param.to_physical(res.x)
     result = {
@@ -57,7 +59,13 @@ def result_dict(problem: FitProblem, res: OptimiseResult, *, command: str, setti
         "seconds": seconds,
     }
     if laplace:
-        result["laplace"] = laplace_summary(problem, res.x)
+        ref = (settings or {}).get("sigma_reference")
+        st = settings or {}
+        result["laplace"] = uncertainty(problem, res.x, sigma=st.get("sigma") or "total",
+                                        reference=None if ref is None else ReferenceModel.of(
+                                            problem.model, tables=tuple(ref[:4]), orders=int(ref[4])),
+                                        refits=int(st.get("sigma_refits", 0) or 0),
+                                        options=FitOptions(starts=1, adam_steps=0, max_iter=int(st.get("max_iter", 100))))
     return result
 
 

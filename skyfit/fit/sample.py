@@ -31,6 +31,7 @@ from torch import Tensor
 
 from .chain import CHAIN_FILE, check_resumable, initial_ball, model_signature, read_checkpoint, run_chain
 from .diagnostics import chain_diagnostics, importance_bias, physical_samples, posterior_summary, predictive_std
+from .budget import inflated_problem
 from .laplace import display_names, laplace_summary
 from .model import FitProblem
 from .parameters import NUISANCE, PARAMETERS
@@ -324,6 +325,11 @@ def run_sample(data, config: dict, init_path, out_dir, *, overrides: dict | None
     if cheap:
         final_problem, _ = build_problem(data, config, init, init_path, kider_site, max_samples=ss.max_samples,
                                          device=device)
+    budget = (init.get("laplace") or {}).get("budget") or {}
+    floor = float(budget.get("floor_relative") or 0.0)
+    if floor > 0:  # the fit's discrepancy floor, fixed (not sampled): sigma'^2 = sigma^2 + (f m(x0))^2
+        problem = with_floor(problem, x0, floor)
+        final_problem = None if final_problem is None else with_floor(final_problem, x0, floor)
     P = problem.param.size
     if ss.walkers < 2 * P:
         raise SampleError(f"--walkers {ss.walkers} is fewer than 2 x {P} free parameters; use at least {2 * P}")
@@ -350,6 +356,33 @@ def run_sample(data, config: dict, init_path, out_dir, *, overrides: dict | None
         progress=progress, batched=ss.batched, laplace=lap, final_problem=final_problem,
         checkpoint_seconds=ss.checkpoint_seconds, plots=plots, predictive_draws=ss.predictive_draws,
         init_scale=ss.init_scale, extra=extra, truths=truths)
+    if budget:
+        summary["error_budget"] = sampled_budget(summary, budget, floor)
     summary["seconds_total"] = time.perf_counter() - t0
     write_text_atomic(Path(out_dir) / SUMMARY_FILE, dumps(summary))
     return summary
+
+
+def with_floor(problem: FitProblem, x0: Tensor, floor: float) -> FitProblem:
+    """``problem`` with the relative error floor ``floor`` added in quadrature to its sigma, at the model of x0
+    (:func:`skyfit.fit.budget.inflated_problem`)."""
+    with torch.no_grad():
+        preds = problem.predict(x0)
+        phys = problem.param.to_physical(x0)
+    return inflated_problem(problem, preds, floor, phys)
+
+
+def sampled_budget(summary: dict, budget: dict, floor: float) -> dict:
+    """summary.json's ``error_budget``: the chain's std with the fit's numerical term added in quadrature.
+
+    The chain samples the likelihood with the fit's discrepancy floor held fixed (``floor_relative``); the
+    numerical model error is a bias, not a width, so it is added to the posterior std as the fit's result
+    adds it to the Laplace sigma (docs/uncertainty.md, "Honest sigma under model error")."""
+    num = budget.get("sigma_numerical") or {}
+    num.update({k: v.get("sigma_numerical") for k, v in (budget.get("derived") or {}).items()})
+    total = {}
+    for n, d in summary.get("parameters", {}).items():
+        s = d.get("std")
+        total[n] = None if s is None else math.sqrt(s**2 + float(num.get(n) or 0.0) ** 2)
+    return {"floor_relative": floor, "floor": "fixed at the fit's value (RESULT.json laplace.budget), not sampled",
+            "sigma_numerical": num, "sigma_total": total}

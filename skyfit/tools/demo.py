@@ -8,8 +8,11 @@
 2. Realistic noise: sigma = hypot(1 % of the radiance, 0.5 % of the median radiance)
    (gain and read noise), written as a spectral EXR with its noise model in the header.
 3. ``skyfit fit`` on that file (Chapman + Gauss-16, Hillaire 16 x 16, L-BFGS) with the
-   Laplace covariance (the sigma printed); unless ``--quick``, ``skyfit sample`` (emcee,
-   12 walkers x 150 steps on a pixel subsample, see :data:`SAMPLE_PIXELS`; corner plot).
+   Laplace covariance and the error budget (:mod:`skyfit.fit.budget`): the sigma printed is
+   noise + numerical model error (the fit's renderer against the converged reference) +
+   the discrepancy floor; unless ``--quick``, ``skyfit sample`` (emcee, 12 walkers on a pixel
+   subsample, see :data:`SAMPLE_PIXELS`, run until the chain is 50 autocorrelation times
+   long, :func:`_sample`; corner plot).
 4. LUT export of the fitted atmosphere (Bruneton tables at reduced sizes).
 5. Truth vs recovered +- sigma for every free parameter, printed and in ``report.md``.
 
@@ -19,6 +22,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import time
 from pathlib import Path
 
@@ -31,6 +35,7 @@ from ..atmosphere import atmosphere_from_config, load_yaml
 from ..camera import FisheyeCamera, render_fisheye
 from ..export import export_luts
 from ..fit.data import noise_sigma
+from ..fit.diagnostics import MIN_STEPS_PER_TAU
 from ..fit.results import atmosphere_from_result
 from ..fit.run import run_fit
 from ..fit.sample import run_sample
@@ -80,7 +85,13 @@ def fit_config(quick: bool) -> dict:
         "free": list(TRUTH), "orders": 2, "multiple": "hillaire", "integrator": "chapman", "view_samples": 16,
         "rule": "gauss", "starts": 1, "sun_mask_deg": 3.0, "min_elevation_deg": 2.0,
     }
+    if quick:  # a smaller reference for the numerical term (3 s instead of 20 s of tables on one core), no refits
+        cfg["fit"].update(sigma_reference=list(QUICK_SIGMA_REFERENCE), sigma_refits=0)
     return cfg
+
+
+QUICK_SIGMA_REFERENCE = (8, 32, 8, 4, 4)
+"""``--quick``: Bruneton table sizes and orders of the error budget's reference (fit.sigma_reference)."""
 
 
 def _render_truth(size: int, lam: np.ndarray, quick: bool):
@@ -128,34 +139,48 @@ def _png(path: Path, rgb: np.ndarray, valid: np.ndarray) -> None:
 
 
 def _uncertainty_rows(result: dict, posterior: dict | None) -> list[dict]:
-    """Truth vs recovered with the Laplace sigma of the full data (and emcee's of the subsample);
-    the aerosol optical depth (derived: beta550 x H_M) last."""
+    """Truth vs recovered with the total sigma of the full data (noise + numerical + discrepancy, and
+    its parts; emcee's of the subsample); the aerosol optical depth (derived: beta550 x H_M) last."""
     lap = result.get("laplace") or {}
+    budget = lap.get("budget") or {}
     post_all = (posterior or {}).get("parameters") or {}
+    post_total = ((posterior or {}).get("error_budget") or {}).get("sigma_total") or {}
     truth = {**TRUTH, "mie_aod_550": TRUTH["mie_beta_550"] * TRUTH["mie_scale_height"]}
     rows = []
     for name, true in truth.items():
         if name in TRUTH:
             got, sig_l = float(result["parameters"][name]), (lap.get("sigma") or {}).get(name)
+            parts = {k: (budget.get(k) or {}).get(name) for k in ("sigma_noise", "sigma_numerical", "sigma_discrepancy",
+                                                                  "numerical_shift")}
         else:
             got = float(result["derived"][name])
             sig_l = ((lap.get("derived") or {}).get(name) or {}).get("sigma")
+            parts = {k: ((budget.get("derived") or {}).get(name) or {}).get(k)
+                     for k in ("sigma_noise", "sigma_numerical", "sigma_discrepancy", "numerical_shift")}
+        if not budget:  # fit.sigma: noise
+            parts["sigma_noise"] = sig_l
         post = post_all.get(name) or {}
-        rows.append({"parameter": name, "truth": true, "recovered": got, "sigma_laplace": sig_l,
-                     "sigma_emcee_subsample": post.get("std"), "posterior_median_subsample": post.get("median"),
+        noise = parts["sigma_noise"]
+        rows.append({"parameter": name, "truth": true, "recovered": got, "sigma_laplace": sig_l, **parts,
+                     "sigma_emcee_subsample": post_total.get(name, post.get("std")),
+                     "sigma_emcee_subsample_noise": post.get("std"), "posterior_median_subsample": post.get("median"),
                      "error": got - true, "error_in_sigma": None if not sig_l else (got - true) / sig_l,
+                     "error_in_noise_sigma": None if not noise else (got - true) / noise,
                      "relative_error": (got - true) / true if name != "mie_g" else None})
     return rows
 
 
 def _table(rows: list[dict], units: dict) -> str:
-    lines = ["| parameter | unit | truth | recovered | ± σ (Laplace) | σ emcee, subsample | error | error / σ |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| parameter | unit | truth | recovered | ± σ (total) | σ noise | σ numerical | σ discrepancy | "
+             "σ emcee, subsample | error | error / σ | error / σ noise |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     f = lambda v: "–" if v is None else f"{v:.4g}"  # noqa: E731
     for r in rows:
         err = f"{r['relative_error'] * 100:+.2f} %" if r["relative_error"] is not None else f"{r['error']:+.4f}"
         lines.append(f"| {r['parameter']} | {units.get(r['parameter'], '')} | {r['truth']:.4g} | {r['recovered']:.4g} | "
-                     f"{f(r['sigma_laplace'])} | {f(r['sigma_emcee_subsample'])} | {err} | {f(r['error_in_sigma'])} |")
+                     f"{f(r['sigma_laplace'])} | {f(r.get('sigma_noise'))} | {f(r.get('sigma_numerical'))} | "
+                     f"{f(r.get('sigma_discrepancy'))} | {f(r['sigma_emcee_subsample'])} | {err} | "
+                     f"{f(r['error_in_sigma'])} | {f(r.get('error_in_noise_sigma'))} |")
     return "\n".join(lines)
 
 
@@ -207,10 +232,16 @@ def run_demo(out: str | Path, quick: bool = False, progress: bool = False, log=p
     summary = {**emcee, "quick": quick, "size": size, "wavelengths_nm": lam.tolist(), "sun_deg": list(SUN), "noise": list(NOISE),
                "truth": TRUTH, "rows": rows, "metrics": {k: m[k] for k in ("loss", "rmse", "rmse_units", "delta_e")},
                "timings_s": timings, "files": sorted(p.name for p in out.iterdir())}
-    note = ("σ is statistical (the noise) only. The truth was rendered with a finer model than the fit's (Hillaire "
-            "LUT 32 x 32 vs 16 x 16 texels, Gauss-Legendre optical depth vs Chapman, more view samples), so "
-            "|error / σ| well above 2 is that model error, not noise: β550 and H_M trade along their nearly "
-            "degenerate valley while their product, the optical depth, stays close (docs/fitting.md, 'Model error').")
+    b = (result.get("laplace") or {}).get("budget") or {}
+    note = ("σ is the total error bar: the noise (σ noise, the Hessian of the likelihood), the numerical model error "
+            "(σ numerical: the parameter shift of refitting with the converged reference renderer, "
+            f"{(b.get('reference') or {}).get('table_sizes')} Bruneton tables with {(b.get('reference') or {}).get('table_orders')} "
+            f"orders, by {b.get('method')}) and "
+            f"the model discrepancy (σ discrepancy: a relative error floor f = {b.get('floor_relative') or 0:.3g} that brings "
+            f"χ²/dof from {b.get('chi2_per_dof_corrected') or float('nan'):.3g} to 1), added in quadrature. The truth was rendered "
+            "with a finer model than the fit's (Hillaire LUT 32 x 32 vs 16 x 16 texels, Gauss-Legendre optical depth "
+            "vs Chapman, more view samples): 'error / σ noise' shows how far the noise-only σ misses it "
+            "(docs/uncertainty.md, 'Honest sigma under model error').")
     log(note)
     report = [f"# skyfit demo{' (--quick)' if quick else ''}", "",
               f"True sky: {size}x{size} equidistant fisheye, {len(lam)} wavelengths {lam[0]:g}-{lam[-1]:g} nm, sun zenith "
@@ -228,18 +259,45 @@ SAMPLE_PIXELS = 800
 """emcee in the demo sees every k-th sky pixel so that at most this many remain: with multiple
 scattering the walkers are evaluated one at a time, each rebuilding the Hillaire LUT
 (skyfit.fit.batched covers single scattering), and 12 walkers x 150 steps on all 12 892
-pixels would take most of an hour on 2 CPU cores. 150 steps were 9 autocorrelation times
-(tau_max 16.5, docs/uncertainty.md): enough for widths and a corner plot, short of emcee's
-50 tau (the run says so). Its widths are those of the subsample (about sqrt(16) = 4x the
-full data's); the ratio to the Laplace widths of the same subsample is what it checks."""
+pixels would take most of an hour on 2 CPU cores. Its widths are those of the subsample
+(about sqrt(16) = 4x the full data's); the ratio to the Laplace widths of the same
+subsample is what it checks."""
+PILOT_STEPS = 150
+"""The pilot chain's length; the chain then grows to :data:`MIN_STEPS_PER_TAU` x its tau (:func:`chain_steps`)."""
+MAX_SAMPLE_STEPS = 3000
+"""The demo's chain stops growing here (then it says that it is short of the tau rule)."""
+TAU_MARGIN = 1.2
+"""Steps asked for = margin x 50 x the running tau: tau estimates from short chains run low."""
+
+
+def chain_steps(tau_max: float, steps_done: int, margin: float = TAU_MARGIN, cap: int = MAX_SAMPLE_STEPS) -> int:
+    """Total steps for emcee's rule (chain >= :data:`MIN_STEPS_PER_TAU` tau) from the running tau estimate,
+    at least ``steps_done`` + 1 and at most ``cap``. [steps]"""
+    if not math.isfinite(tau_max) or tau_max <= 0:
+        return cap
+    return int(min(cap, max(steps_done + 1, math.ceil(margin * MIN_STEPS_PER_TAU * tau_max))))
 
 
 def _sample(observed_exr: Path, out: Path, progress: bool, log, device="cpu") -> dict | None:
-    """``skyfit sample`` around the fit on a pixel subsample: posterior, corner and trace plots in ``out/posterior``."""
+    """``skyfit sample`` around the fit on a pixel subsample: posterior, corner and trace plots in ``out/posterior``.
+
+    A pilot of :data:`PILOT_STEPS` steps estimates tau; the chain is then continued (``--resume``)
+    to 1.2 x 50 tau, re-estimated and continued again until emcee's rule holds (or
+    :data:`MAX_SAMPLE_STEPS`)."""
     cfg = fit_config(False)
-    cfg["sample"] = {"walkers": 12, "steps": 150, "predictive_draws": 16, "max_samples": SAMPLE_PIXELS}
+    cfg["sample"] = {"walkers": 12, "steps": PILOT_STEPS, "predictive_draws": 16, "max_samples": SAMPLE_PIXELS}
     summ = run_sample([observed_exr], cfg, out / "RESULT.json", out / "posterior", progress=progress,
                       device=device, truths=TRUTH)  # truth lines on the corner plot
+    for _ in range(4):
+        d, done = summ["diagnostics"], summ["sampler"]["steps"]
+        if d.get("long_enough") or done >= MAX_SAMPLE_STEPS:
+            break
+        steps = chain_steps(float(d.get("tau_max", float("nan"))), done)
+        log(f"emcee: {done} steps are {done / d.get('tau_max', float('nan')):.1f} tau (tau_max "
+            f"{d.get('tau_max', float('nan')):.3g}); continuing to {steps} steps for the {MIN_STEPS_PER_TAU} tau rule")
+        cfg["sample"]["steps"] = steps
+        summ = run_sample([observed_exr], cfg, out / "RESULT.json", out / "posterior", progress=progress, resume=True,
+                          device=device, truths=TRUTH)
     ratios = ", ".join(f"{n} {'-' if r['ratio'] is None else format(r['ratio'], '.2f')}"
                        for n, r in (summ.get("laplace_vs_emcee") or {}).items())
     log(f"emcee on {SAMPLE_PIXELS} pixels: {summ['sampler']['steps']} steps x {summ['sampler']['walkers']} walkers, "

@@ -1,0 +1,272 @@
+"""Coverage of skyfit's sigma under model error: synthetic skies from a richer model than the fit's.
+
+Each sky: a random atmosphere (AOD via beta550, Angstrom alpha, H_M, g, albedo, Rayleigh scale;
+sun zenith 25-65 deg), rendered by a richer model than the fit uses:
+
+* single scattering with Gauss-Legendre optical depth (``--truth-light`` nodes) and a
+  ``--truth-view``-node Gauss view integral, plus orders 2..``--truth-orders`` of Bruneton &
+  Neyret 2008 tables at ``--truth-tables`` (skyfit.fit.budget.ReferenceModel with the truth's
+  sizes: finer than the budget's default reference, so the reference does not reproduce the truth);
+* every other sky a two-term Henyey-Greenstein aerosol phase (g1 = g, g2 in (-0.4, -0.1),
+  forward weight f in (0.85, 0.97)) that the fit's one-term HG cannot represent; its "true g" is
+  the asymmetry parameter f g1 + (1 - f) g2 (HG's g is its own asymmetry).
+
+Observed as a ``--size`` x ``--size`` equidistant fisheye with ``--wavelengths`` wavelengths and the
+demo's noise, sigma = hypot(1 % L, 0.5 % median L), known to the fit. The fit: the demo's model
+(Chapman optical depth, 16-node Gauss view integral, Hillaire's LUT 16 x 16, HG phase), free
+rayleigh_scale, mie_beta_550, mie_angstrom_alpha, mie_scale_height, mie_g, ground_albedo; then the
+Laplace sigma of the noise and the total sigma of skyfit.fit.budget. Coverage = the fraction of
+skies whose 68 % / 95 % interval (Gaussian in the unconstrained parameter, mapped to physical
+units) holds the truth, with its binomial error sqrt(p (1 - p) / n) at the nominal p.
+
+    OMP_NUM_THREADS=1 nohup .venv/bin/python scripts/coverage_model_error.py --skies 20 \\
+        --out docs/uncertainty/coverage_model_error.json > coverage.log 2>&1 &
+
+The JSON is rewritten after every sky (per-sky rows and the running table), so a killed run
+keeps what it finished; ``--resume`` skips the skies already in it.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from skyfit.atmosphere import atmosphere_from_config, load_yaml
+from skyfit.camera import FisheyeCamera
+from skyfit.fit import FitOptions, FitProblem, Observation, Parameterisation, fit, make_loss
+from skyfit.fit.budget import ReferenceModel, error_budget
+from skyfit.fit.data import noise_sigma
+from skyfit.fit.laplace import laplace_summary
+from skyfit.fit.problem import fit_settings, prepare
+from skyfit.transmittance import make_integrator
+
+CONFIGS = Path(__file__).resolve().parents[1] / "skyfit" / "configs"
+FREE = ["rayleigh_scale", "mie_beta_550", "mie_angstrom_alpha", "mie_scale_height", "mie_g", "ground_albedo"]
+REPORTED = FREE + ["mie_aod_550"]
+NOISE = (0.01, 0.005)
+FIT = {"orders": 2, "multiple": "hillaire", "integrator": "chapman", "view_samples": 16, "rule": "gauss", "starts": 1,
+       "sun_mask_deg": 3.0, "min_elevation_deg": 2.0, "max_iter": 200}
+
+
+def draw_truth(rng: np.random.Generator, two_term: bool) -> dict:
+    t = {
+        "rayleigh_scale": float(rng.uniform(0.9, 1.1)),
+        "mie_beta_550": float(math.exp(rng.uniform(math.log(1e-5), math.log(8e-5)))),
+        "mie_angstrom_alpha": float(rng.uniform(0.2, 1.8)),
+        "mie_scale_height": float(rng.uniform(800.0, 2500.0)),
+        "g1": float(rng.uniform(0.6, 0.85)),
+        "ground_albedo": float(rng.uniform(0.1, 0.35)),
+        "sun_zenith_deg": float(rng.uniform(25.0, 65.0)),
+        "sun_azimuth_deg": float(rng.uniform(0.0, 360.0)),
+    }
+    if two_term:
+        t["g2"] = float(rng.uniform(-0.4, -0.1))
+        t["hg_weight"] = float(rng.uniform(0.85, 0.97))
+        t["mie_g"] = t["hg_weight"] * t["g1"] + (1 - t["hg_weight"]) * t["g2"]  # the asymmetry parameter
+    else:
+        t["mie_g"] = t["g1"]
+    t["mie_aod_550"] = t["mie_beta_550"] * t["mie_scale_height"]
+    return t
+
+
+def truth_config(t: dict) -> dict:
+    cfg = copy.deepcopy(load_yaml(CONFIGS / "earth.yaml"))
+    cfg["name"] = "coverage_truth"
+    cfg["rayleigh"]["scale"] = t["rayleigh_scale"]
+    cfg["mie"].pop("angstrom_beta", None)
+    cfg["mie"]["extinction_550"] = t["mie_beta_550"]
+    cfg["mie"]["angstrom_alpha"] = t["mie_angstrom_alpha"]
+    cfg["mie"]["scale_height_m"] = t["mie_scale_height"]
+    cfg["mie"]["g"] = t["g1"]
+    if "g2" in t:
+        cfg["mie"].update(phase="two_term_hg", g2=t["g2"], hg_weight=t["hg_weight"])
+    else:
+        cfg["mie"]["phase"] = "henyey_greenstein"
+    cfg["ground"] = {"albedo": t["ground_albedo"]}
+    return cfg
+
+
+def fit_config() -> dict:
+    cfg = copy.deepcopy(load_yaml(CONFIGS / "earth.yaml"))
+    cfg["mie"]["phase"] = "henyey_greenstein"
+    cfg["fit"] = {**FIT, "free": list(FREE)}
+    return cfg
+
+
+def observe(t: dict, args, rng: np.random.Generator) -> tuple[Observation, dict]:
+    """The truth rendered with the richer model at the fisheye's sky pixels, plus known noise."""
+    lam = np.linspace(420.0, 680.0, args.wavelengths)
+    view, valid = FisheyeCamera(args.size).pixel_vectors(torch.float64)
+    view = view[valid]
+    n = view.shape[0]
+    rad = lambda d: torch.tensor(math.radians(d), dtype=torch.float64)  # noqa: E731
+    chans = tuple(f"L{x:g}" for x in lam)
+    ones = torch.ones(n, len(lam), dtype=torch.float64)
+    dummy = Observation("truth", "truth", "spectral", view, rad(t["sun_zenith_deg"]), rad(t["sun_azimuth_deg"]), ones, ones,
+                        torch.ones(n, dtype=torch.bool), chans, torch.tensor(lam))
+    base = atmosphere_from_config(truth_config(t), lam)
+    tables = tuple(int(v) for v in args.truth_tables.split(","))
+    model = ReferenceModel(make_integrator("gauss", samples=args.truth_light), orders=2, view_samples=args.truth_view,
+                           rule="gauss", reference_tables=tables, reference_orders=args.truth_orders)
+    prob = FitProblem(Parameterisation(base, []), model, [dummy], make_loss("squared"))
+    t0 = time.process_time()
+    with torch.no_grad():
+        clean = prob.predict(prob.param.initial_vector())[0]
+    secs = time.process_time() - t0
+    sigma = noise_sigma(clean, NOISE[0], NOISE[1] * float(clean.median()))
+    gen = torch.Generator().manual_seed(int(rng.integers(2**31)))
+    noisy = clean + sigma * torch.randn(clean.shape, generator=gen, dtype=clean.dtype)
+    obs = Observation("sky", "coverage sky", "spectral", view, rad(t["sun_zenith_deg"]), rad(t["sun_azimuth_deg"]), noisy,
+                      sigma, torch.ones(n, dtype=torch.bool), chans, torch.tensor(lam))
+    return obs, {"truth_render_cpu_s": secs, "n_samples": n}
+
+
+def inside(interval, v) -> bool:
+    return interval is not None and interval[0] <= v <= interval[1]
+
+
+def derived_interval(d: dict, z: float):
+    if not d or d.get("sigma") is None:
+        return None
+    return [d["value"] - z * d["sigma"], d["value"] + z * d["sigma"]]
+
+
+def one_sky(k: int, args) -> dict:
+    rng = np.random.default_rng([args.seed, k])
+    two_term = k % 2 == 1
+    t = draw_truth(rng, two_term)
+    obs, info = observe(t, args, rng)
+    cfg = fit_config()
+    prep = prepare([obs], cfg, fit_settings(cfg["fit"]))
+    problem = prep.fit_problem()
+    c0 = time.process_time()
+    res = fit(problem, prep.settings.options(False))
+    c_fit = time.process_time() - c0
+    c0 = time.process_time()
+    lap = laplace_summary(problem, res.x)
+    tot = error_budget(problem, res.x, lap, refits=args.refits,
+                       options=FitOptions(starts=1, adam_steps=0, max_iter=FIT["max_iter"]))
+    c_unc = time.process_time() - c0
+    row = {"sky": k, "two_term_hg": two_term, "truth": t, "fitted": {}, "z_noise": {}, "z_total": {},
+           "in68_noise": {}, "in95_noise": {}, "in68_total": {}, "in95_total": {},
+           "budget": {kk: tot["budget"].get(kk) for kk in ("chi2_per_dof", "chi2_per_dof_corrected", "floor_relative",
+                                                        "floor_relative_68", "model_difference", "sigma_noise", "method", "nonlinearity",
+                                                        "refit_steps_in_sigma", "numerical_tail", "numerical_shift_newton",
+                                                        "sigma_numerical", "sigma_discrepancy", "numerical_shift")},
+           "convergence": res.convergence["reason"], "loss": res.loss,
+           "cpu_s": {"truth_render": info["truth_render_cpu_s"], "fit": c_fit, "uncertainty": c_unc},
+           "n_samples": info["n_samples"]}
+    z68, z95 = 0.9944578832097535, 1.959963984540054
+    for n in REPORTED:
+        if n in FREE:
+            v = res.parameters[n]
+            s_n, s_t = lap["sigma"][n], tot["sigma"][n]
+            i68n, i95n, i68t, i95t = lap["interval68"][n], lap["interval95"][n], tot["interval68"][n], tot["interval95"][n]
+        else:
+            v = lap["derived"][n]["value"]
+            s_n, s_t = lap["derived"][n]["sigma"], tot["derived"][n]["sigma"]
+            i68n, i95n = derived_interval(lap["derived"][n], z68), derived_interval(lap["derived"][n], z95)
+            i68t, i95t = derived_interval(tot["derived"][n], z68), derived_interval(tot["derived"][n], z95)
+        tv = t[n]
+        row["fitted"][n] = v
+        row["z_noise"][n] = None if not s_n else (v - tv) / s_n
+        row["z_total"][n] = None if not s_t else (v - tv) / s_t
+        row["in68_noise"][n], row["in95_noise"][n] = inside(i68n, tv), inside(i95n, tv)
+        row["in68_total"][n], row["in95_total"][n] = inside(i68t, tv), inside(i95t, tv)
+    return row
+
+
+def table(rows: list[dict]) -> dict:
+    n = len(rows)
+    out = {"n_skies": n, "binomial_error_68": math.sqrt(0.68 * 0.32 / max(n, 1)),
+           "binomial_error_95": math.sqrt(0.95 * 0.05 / max(n, 1)), "parameters": {}}
+    for p in REPORTED + ["all"]:
+        names = REPORTED if p == "all" else [p]
+        d = {}
+        for key in ("in68_noise", "in95_noise", "in68_total", "in95_total"):
+            hits = [r[key][q] for r in rows for q in names]
+            d[key.replace("in", "coverage")] = sum(hits) / max(len(hits), 1)
+        zs = [r["z_total"][q] for r in rows for q in names if r["z_total"][q] is not None]
+        zn = [r["z_noise"][q] for r in rows for q in names if r["z_noise"][q] is not None]
+        d["rms_z_total"] = math.sqrt(sum(z * z for z in zs) / max(len(zs), 1))
+        d["rms_z_noise"] = math.sqrt(sum(z * z for z in zn) / max(len(zn), 1))
+        d["n"] = len(zs)
+        out["parameters"][p] = d
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--skies", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--size", type=int, default=10, help="fisheye pixels across (a 12 x 12 image has ~100 sky pixels)")
+    ap.add_argument("--wavelengths", type=int, default=3)
+    ap.add_argument("--truth-light", type=int, default=64)
+    ap.add_argument("--truth-view", type=int, default=64)
+    ap.add_argument("--truth-tables", default="16,64,16,8", help="R,MU,MU_S,NU of the truth's Bruneton tables")
+    ap.add_argument("--truth-orders", type=int, default=8)
+    ap.add_argument("--refits", type=int, default=1, help="the budget's lagged refits (fit.sigma_refits)")
+    ap.add_argument("--part", default="0/1", help="K/N: run only the skies k with k % N == K (N processes side by side)")
+    ap.add_argument("--descending", action="store_true", help="run the part's skies from the last (a second process per part)")
+    ap.add_argument("--merge", nargs="+", help="merge the JSON files of the parts into --out (no fitting)")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--out", default="docs/uncertainty/coverage_model_error.json")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if args.merge:
+        docs = [json.loads(Path(m).read_text()) for m in args.merge]
+        rows = list({r["sky"]: r for d in docs for r in reversed(d["skies"])}.values())  # one row per sky
+        rows.sort(key=lambda r: r["sky"])
+        good = [r for r in rows if "failed" not in r]
+        doc = {**docs[0], "command": docs[0]["command"].split(" --part")[0] + " (parts merged: " + ", ".join(args.merge) + ")",
+               "table": table(good), "skies": rows, "wall_s": max(d["wall_s"] for d in docs),
+               "cpu_s": sum(sum(r["cpu_s"].values()) for r in good)}
+        out.write_text(json.dumps(doc, indent=1))
+        print(json.dumps(doc["table"], indent=1))
+        return 0
+    part, parts = (int(v) for v in args.part.split("/"))
+    rows = json.loads(out.read_text())["skies"] if args.resume and out.exists() else []
+    done = {r["sky"] for r in rows}
+    t_start = time.perf_counter()
+    for k in (reversed(range(args.skies)) if args.descending else range(args.skies)):
+        if k in done or k % parts != part:
+            continue
+        t0 = time.perf_counter()
+        try:
+            row = one_sky(k, args)
+        except Exception as e:  # a failed sky is recorded, not hidden
+            print(f"sky {k}: FAILED {type(e).__name__}: {e}", flush=True)
+            rows.append({"sky": k, "failed": f"{type(e).__name__}: {e}"})
+            continue
+        row["wall_s"] = time.perf_counter() - t0
+        rows.append(row)
+        good = [r for r in rows if "failed" not in r]
+        summ = table(good)
+        all_ = summ["parameters"]["all"]
+        print(f"sky {k + 1}/{args.skies} ({'two-term' if row['two_term_hg'] else 'HG'}, sun {row['truth']['sun_zenith_deg']:.0f} deg): "
+              f"chi2/dof {row['budget']['chi2_per_dof']:.3g} -> {row['budget']['chi2_per_dof_corrected']:.3g}, floor "
+              f"{row['budget']['floor_relative']:.3g}; max |z| noise {max(abs(z) for z in row['z_noise'].values() if z is not None):.2f}, "
+              f"total {max(abs(z) for z in row['z_total'].values() if z is not None):.2f}; running coverage 68/95 noise "
+              f"{all_['coverage68_noise']:.2f}/{all_['coverage95_noise']:.2f}, total {all_['coverage68_total']:.2f}/"
+              f"{all_['coverage95_total']:.2f}; {row['wall_s']:.0f} s", flush=True)
+        doc = {"command": "scripts/coverage_model_error.py " + " ".join(sys.argv[1:] if argv is None else argv),
+               "settings": vars(args), "fit": FIT, "free": FREE, "noise": NOISE, "table": summ, "skies": rows,
+               "wall_s": time.perf_counter() - t_start}
+        tmp = out.with_suffix(".tmp")
+        tmp.write_text(json.dumps(doc, indent=1))
+        tmp.replace(out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

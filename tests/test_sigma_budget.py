@@ -1,0 +1,209 @@
+"""The error budget (skyfit.fit.budget): numerical shift, discrepancy floor, total sigma.
+
+Independent computations: the numerical term's one Newton step is checked against a brute-force
+refit of the same data with the reference renderer (L-BFGS to a tight tolerance); the floor
+against synthetic data whose extra relative noise is known; the total sigma against a fit whose
+truth comes from a finer renderer than the fit's, at a noise so low that the noise-only sigma
+misses the truth by many sigmas (a deterministic analogue of the coverage study,
+scripts/coverage_model_error.py).
+"""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from skyfit.atmosphere import atmosphere_from_config
+from skyfit.fit import FitOptions, FitProblem, Parameterisation, SkyModel, fit, make_loss
+from skyfit.fit.budget import (ReferenceModel, error_budget, fit_floor, reference_problem, refit_shift,
+                               uncertainty)
+from skyfit.fit.laplace import laplace_summary
+from skyfit.fit.parameters import FitError
+from skyfit.fit.problem import fit_settings
+from skyfit.tools.demo import chain_steps
+from skyfit.transmittance import make_integrator
+
+from test_sample import LAM, _config, tiny_observation
+
+FREE = ["mie_beta_550", "mie_scale_height", "mie_g", "rayleigh_scale", "exposure"]
+TIGHT = FitOptions(starts=1, adam_steps=0, max_iter=300, grad_tol=1e-12, rel_tol=1e-15)
+
+
+def _coarse():
+    """The fit's renderer: Chapman optical depth."""
+    return SkyModel(make_integrator("chapman"), view_samples=4, rule="gauss")
+
+
+def _fine():
+    """The truth's (and the reference's) renderer: 16-node Gauss-Legendre optical depth, same view integral."""
+    return SkyModel(make_integrator("gauss", samples=16), view_samples=4, rule="gauss")
+
+
+@pytest.fixture(scope="module")
+def biased_fit():
+    """A 10 x 10 sky rendered with the fine model, 0.02 % noise, fitted with the coarse one."""
+    torch.manual_seed(0)
+    obs, truth = tiny_observation(noise=2e-4, seed=5, integrator="gauss")
+    base = atmosphere_from_config(_config(), LAM)
+    prob = FitProblem(Parameterisation(base, FREE), _coarse(), [obs], make_loss("squared"))
+    res = fit(prob, TIGHT)
+    lap = laplace_summary(prob, res.x)
+    return prob, res, lap, truth
+
+
+def test_newton_shift_matches_a_brute_force_refit_with_the_reference(biased_fit):
+    """dx = -H^-1 g (one Newton step) vs the optimum of the same data under the reference renderer,
+    to 5 % of the shift (the Newton step neglects the change of H along the shift and of delta with x);
+    the lagged refits (refit_shift) to 1 %."""
+    prob, res, lap, _ = biased_fit
+    ref = reference_problem(prob, _fine())
+    brute = fit(ref, TIGHT, x0=res.x).x
+    b = error_budget(prob, res.x, lap, reference=_fine(), floor=False)
+    newton = torch.tensor([b["budget"]["numerical_shift"][n] for n in FREE], dtype=torch.float64)
+    v0 = torch.tensor([res.parameters[n] for n in FREE], dtype=torch.float64)
+    vb = torch.tensor([ref.param.physical_dict(brute)[n] for n in FREE], dtype=torch.float64)
+    shift = vb - v0
+    sig = torch.tensor([lap["sigma"][n] for n in FREE], dtype=torch.float64)
+    assert bool((shift.abs() > 3 * sig).any())  # a shift the noise sigma alone would miss
+    torch.testing.assert_close(newton, shift, rtol=0.05, atol=0.05 * float(sig.min()))
+    s_x = torch.tensor([lap["sigma_unconstrained"][n] for n in FREE], dtype=torch.float64)
+    rs = refit_shift(prob, res.x, ref, res.x, s_x, iterations=3, options=TIGHT, tol=1e-3)
+    torch.testing.assert_close(rs["x"], brute, rtol=0, atol=0.01 * float(s_x.min()))
+    # the numerical sigma is the size of the shift
+    for n in FREE:
+        assert b["budget"]["sigma_numerical"][n] == pytest.approx(abs(b["budget"]["numerical_shift"][n]), rel=1e-3)
+
+
+def test_total_sigma_covers_a_truth_the_noise_sigma_misses(biased_fit):
+    """Truth from the fine renderer: |error| / sigma_noise > 3 somewhere, |error| / sigma_total <= 2 everywhere."""
+    prob, res, lap, truth = biased_fit
+    tot = error_budget(prob, res.x, lap, reference=ReferenceModel.of(prob.model))  # the default reference family
+    z_noise = {n: (res.parameters[n] - truth[n]) / lap["sigma"][n] for n in FREE}
+    z_total = {n: (res.parameters[n] - truth[n]) / tot["sigma"][n] for n in FREE}
+    assert max(abs(z) for z in z_noise.values()) > 3, z_noise
+    assert max(abs(z) for z in z_total.values()) <= 2, z_total
+    for n in FREE:  # total >= each part; the parts add in quadrature on the diagonal
+        b = tot["budget"]
+        parts = b["sigma_noise"][n] ** 2 + b["sigma_numerical"][n] ** 2 + b["sigma_discrepancy"][n] ** 2
+        assert tot["sigma"][n] == pytest.approx(math.sqrt(parts), rel=1e-6)
+        assert tot["sigma"][n] >= lap["sigma"][n]
+        lo, hi = tot["interval95"][n]
+        assert lo <= truth[n] <= hi
+    assert tot["sigma_mode"] == "total" and tot["sigma_noise"] == lap["sigma"]
+
+
+def test_floor_recovers_a_known_extra_relative_noise():
+    """Data = model (1 + 0.02 N) + sigma N with sigma the stated 1 % noise: chi^2/dof = 5; the floor solving
+    chi^2 = dof is 0.02 within its 68 % range (chi^2 at dof +- sqrt(2 dof)) and 10 %."""
+    f_true = 0.02
+    obs, truth = tiny_observation(noise=0.01, seed=7, size=30)
+    base = atmosphere_from_config(_config(), LAM)
+    prob = FitProblem(Parameterisation(base, list(truth), values=truth), _coarse(), [obs], make_loss("squared"))
+    x = prob.param.initial_vector()
+    with torch.no_grad():  # the model the data were rendered with (Chapman, the same view integral)
+        clean = prob.predict(x)[0]
+    gen = torch.Generator().manual_seed(11)
+    extra = clean * f_true * torch.randn(clean.shape, generator=gen, dtype=clean.dtype)
+    obs.values[obs.mask] = obs.values[obs.mask] + extra
+    preds = [clean]
+    phys = prob.param.to_physical(x)
+    dof = clean.numel()
+    f = fit_floor(prob, preds, dof, phys)
+    lo = fit_floor(prob, preds, dof, phys, dof + math.sqrt(2 * dof))
+    hi = fit_floor(prob, preds, dof, phys, dof - math.sqrt(2 * dof))
+    assert lo <= f_true <= hi, (lo, f, hi)
+    assert f == pytest.approx(f_true, rel=0.1)
+    # no extra noise: chi^2 at about dof, a floor within its own range of 0
+    obs0, _ = tiny_observation(noise=0.01, seed=7, size=30)
+    prob0 = FitProblem(Parameterisation(base, list(truth), values=truth), _coarse(), [obs0], make_loss("squared"))
+    assert fit_floor(prob0, preds, dof, phys, dof + math.sqrt(2 * dof)) == 0.0
+
+
+def test_noise_mode_is_the_laplace_summary_and_bad_modes_fail(biased_fit):
+    prob, res, lap, _ = biased_fit
+    noise = uncertainty(prob, res.x, "noise")
+    assert noise["sigma_mode"] == "noise" and "budget" not in noise
+    torch.testing.assert_close(noise["sigma"]["mie_g"], lap["sigma"]["mie_g"], rtol=1e-10, atol=0)
+    with pytest.raises(FitError, match="sigma must be one of total, noise"):
+        uncertainty(prob, res.x, "everything")
+    with pytest.raises(FitError, match=r"fit.sigma must be one of total, noise, got 'all'"):
+        fit_settings({"sigma": "all"})
+    with pytest.raises(FitError, match=r"sigma_reference must be \[R, MU, MU_S, NU, ORDERS\]"):
+        fit_settings({"sigma_reference": [16, 64, 16]})
+
+
+def test_reference_model_adds_bruneton_orders_to_converged_single_scattering():
+    """orders 1: the reference is converged single scattering (its Gauss-Legendre nodes); orders 2: plus the
+    tables' orders >= 2, which brighten every direction."""
+    obs, _ = tiny_observation(noise=0.01, seed=1, size=6)
+    base = atmosphere_from_config(_config(), LAM)
+    p1 = FitProblem(Parameterisation(base, ["exposure"]), _coarse(), [obs], make_loss("squared"))
+    r1 = reference_problem(p1)
+    assert r1.model.orders == 1 and r1.model.view_samples == 128
+    x = p1.param.initial_vector()
+    ms = SkyModel(make_integrator("chapman"), orders=2, view_samples=4, rule="gauss")
+    p2 = FitProblem(Parameterisation(base, ["exposure"]), ms, [obs], make_loss("squared"))
+    small = ReferenceModel.of(ms, tables=(4, 8, 4, 4), orders=3)
+    with torch.no_grad():
+        single = r1.predict(x)[0]
+        multiple = reference_problem(p2, small).predict(x)[0]
+        coarse = p1.predict(x)[0]
+        p1.model = SkyModel(make_integrator("gauss", samples=32), view_samples=128, rule="gauss")
+        direct = p1.predict(x)[0]
+    assert bool((multiple > single).all())
+    torch.testing.assert_close(single, direct, rtol=1e-12, atol=0)  # the reference's single scattering
+    assert float(((coarse - single) / single).abs().max()) > 0.01  # 4 view samples: not converged
+    assert small.settings()["table_orders"] == 3
+
+
+@pytest.mark.parametrize("tau, done, expected", [(16.5, 150, 990), (100.0, 150, 3000), (1.0, 150, 151),
+                                                 (float("nan"), 150, 3000)])
+def test_demo_chain_steps_follow_the_tau_rule(tau, done, expected):
+    """1.2 x 50 tau steps, at least one more than done, at most the cap."""
+    assert chain_steps(tau, done) == expected
+
+
+def test_refits_run_only_where_the_newton_step_is_not_linear(biased_fit, monkeypatch):
+    """A linear shift keeps the Newton step (same sigma as refits=0); a forced lagged refit reports its method,
+    the Newton step beside it, and a numerical sigma no smaller than its shift (one refit: + the disagreement)."""
+    import skyfit.fit.budget as budget
+
+    prob, res, lap, _ = biased_fit
+    b0 = error_budget(prob, res.x, lap, reference=_fine(), floor=False)
+    b2 = error_budget(prob, res.x, lap, reference=_fine(), floor=False, refits=2)
+    assert b2["budget"]["nonlinearity"] < budget.NONLINEAR and b2["budget"]["method"] == "newton"
+    assert b2["sigma"] == b0["sigma"]
+    monkeypatch.setattr(budget, "NONLINEAR", -1.0)
+    b1 = error_budget(prob, res.x, lap, reference=_fine(), floor=False, refits=1, options=TIGHT)
+    assert b1["budget"]["method"] == "refit (1 lagged refits)"
+    for n in FREE:
+        shift, newton = b1["budget"]["numerical_shift"][n], b1["budget"]["numerical_shift_newton"][n]
+        assert shift == pytest.approx(newton, rel=0.1, abs=0.1 * lap["sigma"][n])  # a linear case: both agree
+        assert b1["budget"]["sigma_numerical"][n] >= 0.99 * abs(shift)  # J dx vs the mapped shift: to 1 %
+
+
+def test_prediction_jacobian_and_the_floor_covariance():
+    """J by Jacobian-vector products vs central differences (h = 1e-6 in x); the Gauss-Newton covariance
+    grows with the floor (cov(f) - cov(0) positive semi-definite) and, for a floor far above the noise,
+    as (f / noise)^2 with relative noise (sigma = 1 % of the value)."""
+    from skyfit.fit.budget import gauss_newton_covariance, prediction_jacobian
+
+    obs, _ = tiny_observation(noise=0.01, seed=3, size=8)
+    base = atmosphere_from_config(_config(), LAM)
+    prob = FitProblem(Parameterisation(base, ["mie_g", "exposure"]), _coarse(), [obs], make_loss("squared"))
+    x = prob.param.initial_vector()
+    J = prediction_jacobian(prob, x)[0]
+    h = 1e-6
+    with torch.no_grad():
+        fd = torch.stack([(prob.predict(x + h * e)[0] - prob.predict(x - h * e)[0]) / (2 * h)
+                          for e in torch.eye(2, dtype=torch.float64)], -1)
+        m = prob.predict(x)
+    torch.testing.assert_close(J, fd, rtol=1e-5, atol=1e-9 * float(fd.abs().max()))
+    phys = prob.param.to_physical(x)
+    c0 = gauss_newton_covariance(prob, [J], m, 0.0, phys)
+    c1 = gauss_newton_covariance(prob, [J], m, 0.05, phys)
+    assert float(torch.linalg.eigvalsh(c1 - c0).min()) >= -1e-12 * float(c1.abs().max())
+    # sigma = 0.01 |o| and the floor 0.05 |m|: for o close to m the ratio is about 1 + 25
+    ratio = torch.diagonal(c1) / torch.diagonal(c0)
+    assert bool(((ratio > 20) & (ratio < 32)).all()), ratio
