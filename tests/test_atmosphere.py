@@ -325,3 +325,18 @@ def test_defaults_are_bruneton_earth():
     for f in ("rayleigh_scattering", "mie_extinction", "mie_scattering", "mie_g", "ground_albedo", "solar_irradiance"):
         torch.testing.assert_close(getattr(a, f), getattr(b, f), rtol=1e-12, atol=0)
     assert a.ozone_absorption is None and math.isclose(a.top_radius, b.top_radius)
+
+
+def test_a_fit_config_also_builds_an_atmosphere():
+    """The shipped kider config carries a ``fit`` section (skyfit.fit reads it): the atmosphere ignores it,
+    so ``skyfit render kider`` works, and the result equals the config without that section."""
+    import copy
+
+    from skyfit.atmosphere import load_yaml
+    from skyfit.atmosphere.config import SHIPPED_CONFIGS
+
+    cfg = load_yaml(str(SHIPPED_CONFIGS / "kider.yaml"))
+    assert "fit" in cfg
+    bare = {k: v for k, v in copy.deepcopy(cfg).items() if k not in ("fit", "sample")}
+    a, b = atmosphere_from_config(cfg, [450.0, 550.0]), atmosphere_from_config(bare, [450.0, 550.0])
+    assert torch.equal(a.mie_scattering, b.mie_scattering) and torch.equal(a.rayleigh_scattering, b.rayleigh_scattering)

@@ -94,6 +94,10 @@ SECTION_KEYS: dict[str, frozenset[str]] = {
 }
 """Keys each config section accepts; anything else is refused (a typo would silently keep a default)."""
 
+RUN_SECTIONS = ("fit", "sample")
+"""Sections of a config that set up a fit or a sampler run (skyfit.fit reads them); the atmosphere ignores them,
+so a fit's config (e.g. the shipped ``kider``) also renders."""
+
 
 def _section(cfg: dict, name: str) -> dict:
     d = cfg.get(name)
@@ -176,7 +180,7 @@ def atmosphere_from_config(
     """
     lam = np.atleast_1d(np.asarray(wavelengths_nm, float))
     T = functools.partial(torch.as_tensor, dtype=dtype, device=device)
-    known = {"name", "source", "description", "notes", *SECTION_KEYS}
+    known = {"name", "source", "description", "notes", *SECTION_KEYS, *RUN_SECTIONS}
     unknown = set(cfg) - known
     if unknown:
         raise ConfigError(f"unknown config section(s) {sorted(unknown)}; known: {sorted(known)}")

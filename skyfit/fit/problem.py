@@ -19,6 +19,7 @@ import torch
 from ..atmosphere import Atmosphere, atmosphere_from_config
 from ..resources import AUTOGRAD, BASE_MEMORY_BYTES, Estimate, single_scattering_estimate, tables_estimate
 from ..atmosphere.wavelengths import DEFAULT_WAVELENGTHS, parse_wavelengths
+from ..atmosphere.config import RUN_SECTIONS
 from ..render.auto import fit_overrides
 from ..transmittance import integrator_from_spec
 from .data import Observation, check_noise_model, expand_data_paths, noise_sigma, observation_from_exr, observation_from_kider
@@ -31,7 +32,6 @@ DEFAULT_FREE = ("rayleigh_scale", "mie_beta_550", "mie_scale_height", "mie_g", "
 """Free parameters when neither ``free`` nor the config's fit.free says; Kider scans add sun_azimuth_offset."""
 DEFAULT_RGB_WAVELENGTHS = DEFAULT_WAVELENGTHS
 """Model grid for RGB data whose EXR header does not give the grid it was rendered on [nm]."""
-RUN_SECTIONS = ("fit", "sample")
 """Config sections that set up a run rather than the atmosphere (not passed to the atmosphere loader)."""
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
