@@ -202,6 +202,22 @@ def table(rows: list[dict]) -> dict:
     return out
 
 
+def markdown(doc: dict) -> str:
+    """The coverage tables of a merged run as markdown (docs/uncertainty.md)."""
+    lines = []
+    for key, title in (("table", "all skies"), ("table_hg", "HG truth"), ("table_two_term", "two-term HG truth")):
+        t = doc[key]
+        lines += [f"{title}: n = {t['n_skies']} skies (binomial error {t['binomial_error_68']:.3f} at 68 %, "
+                  f"{t['binomial_error_95']:.3f} at 95 %)", "",
+                  "| parameter | 68 % noise σ | 95 % noise σ | 68 % total σ | 95 % total σ | RMS z noise | RMS z total |",
+                  "|---|---|---|---|---|---|---|"]
+        for p, d in t["parameters"].items():
+            lines.append(f"| {p} | {d['coverage68_noise']:.2f} | {d['coverage95_noise']:.2f} | {d['coverage68_total']:.2f} | "
+                         f"{d['coverage95_total']:.2f} | {d['rms_z_noise']:.1f} | {d['rms_z_total']:.2f} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--skies", type=int, default=20)
@@ -229,10 +245,11 @@ def main(argv=None) -> int:
         rows.sort(key=lambda r: r["sky"])
         good = [r for r in rows if "failed" not in r]
         doc = {**docs[0], "command": docs[0]["command"].split(" --part")[0] + " (parts merged: " + ", ".join(args.merge) + ")",
-               "table": table(good), "skies": rows, "wall_s": max(d["wall_s"] for d in docs),
-               "cpu_s": sum(sum(r["cpu_s"].values()) for r in good)}
+               "table": table(good), "table_hg": table([r for r in good if not r["two_term_hg"]]),
+               "table_two_term": table([r for r in good if r["two_term_hg"]]), "skies": rows,
+               "wall_s": max(d["wall_s"] for d in docs), "cpu_s": sum(sum(r["cpu_s"].values()) for r in good)}
         out.write_text(json.dumps(doc, indent=1))
-        print(json.dumps(doc["table"], indent=1))
+        print(markdown(doc))
         return 0
     part, parts = (int(v) for v in args.part.split("/"))
     rows = json.loads(out.read_text())["skies"] if args.resume and out.exists() else []

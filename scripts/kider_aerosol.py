@@ -12,7 +12,9 @@ camera tilt). Variants:
 
 - ``hg``: Henyey-Greenstein, exponential profile (the config's model);
 - ``tthg``, ``bl``, ``tthg_bl``: + the two-term phase (g2, f), + the boundary layer (h_mix), both;
-- ``mie``: the log-normal Mie phase (r_g, sigma_g in place of g and alpha; m = 1.45 + 0.005i).
+- ``mie``: the log-normal Mie phase (r_g, sigma_g in place of g and alpha; m = 1.45 + 0.005i);
+- any of them + ``_b``: multiple scattering from Bruneton's 4 orders (``multiple: bruneton_lagged``) instead of
+  the config's Hillaire LUT.
 
 Results are cached per fit in --work (rerun to resume). Score: RMSE over the valid samples and the
 36 bands of 10 nm in 360-720 nm, mW/(m^2 sr nm), as docs/kider.md.
@@ -51,12 +53,27 @@ def _short(p: Path) -> str:
     return p.name.split("___")[-1][:5]
 
 
+BRUNETON = {"multiple": "bruneton_lagged", "orders": 4, "table_sizes": [64, 32, 16, 8, 16, 64, 16, 8]}
+"""Suffix ``_b`` of a variant: Bruneton's 4 orders as a factor on the live single scattering (frozen per fit,
+refreshed; the photo fits' tables) instead of the config's Hillaire LUT (32 directions x 12 steps)."""
+
+
+def _parse(v: str) -> tuple[str, bool]:
+    base, b = (v[:-2], True) if v.endswith("_b") else (v, False)
+    if base not in VARIANTS:
+        raise SystemExit(f"unknown variant {v!r}: one of {', '.join(VARIANTS)}, each optionally with _b (Bruneton)")
+    return base, b
+
+
 def variant_config(v: str) -> dict:
     from skyfit.atmosphere import load_yaml
 
+    base, bruneton = _parse(v)
     cfg = copy.deepcopy(load_yaml(str(CONFIG)))
-    add, drop = VARIANTS[v]
+    add, drop = VARIANTS[base]
     cfg["fit"]["free"] = [n for n in ATMOSPHERE if n not in drop] + add + NUISANCE
+    if bruneton:
+        cfg["fit"].update(BRUNETON)
     return cfg
 
 
@@ -235,8 +252,7 @@ def main() -> None:
     variants = args.variants.split(",")
     only = None if args.captures == "all" else args.captures.split(",")
     for v in variants:
-        if v not in VARIANTS:
-            raise SystemExit(f"unknown variant {v!r}: one of {', '.join(VARIANTS)}")
+        _parse(v)
     if args.stage == "report":
         stage_report(work, variants, Path(args.orientation_work))
         return

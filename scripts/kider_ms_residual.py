@@ -43,15 +43,22 @@ def _capture(name: str) -> Path:
     raise SystemExit(f"no capture {name} under {DAY}")
 
 
-def _predict(res: dict, capture: Path, changes: dict):
-    """The fitted model's prediction (W/(m^2 sr nm)) for ``capture`` with SkyModel ``changes``, and its observation."""
+def _predict(res: dict, capture: Path, changes: dict, bruneton: dict | None = None):
+    """The fitted model's prediction (W/(m^2 sr nm)) for ``capture`` with SkyModel ``changes``, and its observation.
+
+    ``bruneton``: SkyModel changes of Bruneton tables whose multiple scattering (all orders minus the tables'
+    own first order) is added to the problem's live single scattering (``skyfit.fit.photo.freeze_tables``,
+    the photo fits' model; the factor on 8 wavelength nodes, interpolated between them).
+    """
     from skyfit.fit.parameters import NUISANCE
+    from skyfit.fit.photo import freeze_tables
     from skyfit.fit.problem import fit_settings, load_data, prepare
     from skyfit.fit.results import fitted_atmosphere_values, model_from_result
     from skyfit.fit.run import _nuisance_for
 
     s = dataclasses.replace(fit_settings(res.get("settings"), None), max_samples=None)
-    model = dataclasses.replace(model_from_result(res), **changes)
+    base = model_from_result(res)
+    model = dataclasses.replace(base, **changes)
     obs = load_data([capture], s, None, None)
     prep = prepare(obs, res["config"], s, model=model)
     values = fitted_atmosphere_values(res)
@@ -61,6 +68,8 @@ def _predict(res: dict, capture: Path, changes: dict):
             values[n] = v if n != "noise_scale" else v[0]
     problem = prep.problem([], [n for n in NUISANCE if n != "noise_scale"], values)
     x = problem.param.initial_vector(s.torch_dtype, prep.base.device)
+    if bruneton is not None:
+        freeze_tables(problem, x, dataclasses.replace(base, **bruneton), wavelength_nodes_count=8)
     with torch.no_grad():
         return problem.predict(x)[0], problem.observations[0]
 
@@ -74,10 +83,7 @@ def evaluate(res: dict, capture: Path, setting: dict, table_sizes: tuple[int, ..
     """
     t0 = time.process_time()
     if setting.get("multiple") == "bruneton":
-        single, o = _predict(res, capture, {"orders": 1})
-        b_all, _ = _predict(res, capture, {**setting, "table_sizes": table_sizes})
-        b_one, _ = _predict(res, capture, {"multiple": "bruneton", "orders": 1, "table_sizes": table_sizes})
-        pred = single + (b_all - b_one)
+        pred, o = _predict(res, capture, {"orders": 1}, bruneton={**setting, "table_sizes": table_sizes})
     else:
         pred, o = _predict(res, capture, setting)
     cpu = time.process_time() - t0

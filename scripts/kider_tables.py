@@ -57,9 +57,11 @@ def _cfg() -> dict:
 
 def stage_fits(work: Path, day: Path, only: list[str] | None) -> None:
     from skyfit.atmosphere import load_atmosphere  # noqa: F401  (import cost outside the timings)
+    from skyfit.fit.problem import fit_settings, prepare
     from skyfit.fit.run import run_fit
 
     cfg = _cfg()
+    prepare([_captures(day)[0]], cfg, fit_settings(cfg.get("fit")))  # warm-up: the solar spectrum's imports, untimed
     for cap in _captures(day):
         name = _short(cap)
         if only and name not in only:
@@ -238,7 +240,7 @@ def _optimiser_note(work: Path, fits: dict) -> list[str]:
         if old_fits.exists():  # the L-BFGS per-capture fits (b) and (c) were started from / evaluated
             prev = json.loads(old_fits.read_text())
             d = [abs(prev[c]["rmse"] - r["metrics"]["rmse"]) for c, r in fits.items() if c in prev]
-            extra = f" Their RMSE equals (a)'s to {max(d):.1e} (largest difference over {len(d)} captures)."
+            extra = f" Those fits' RMSE equals (a)'s to {max(d):.1e} (largest difference over {len(d)} captures)."
         out += ["", "(b) and (c) below were computed with the L-BFGS optimiser, from the L-BFGS per-capture fits "
                 "(`--optimiser lbfgs`); they were not rerun when (a) moved to Levenberg-Marquardt." + extra]
     return out + [""]

@@ -76,7 +76,7 @@ def main(argv=None) -> int:
                "aod_true": round(tp["mie_aod_550"], 3), "aod_fit": round(a["aod_550"], 3),
                "aod_err": round(a["aod_550"] / tp["mie_aod_550"] - 1, 3),
                "alpha": [round(tp["mie_angstrom_alpha"], 2), round(a["angstrom_alpha"], 2)],
-               "g": [round(tp["mie_g"], 2), round(a["g"], 2)], "rmse_rel": r.result["metrics"]["rmse_rel"],
+               "g": [round(tp["mie_g"], 2), round(a["g"], 2)], "rmse_rel": r.result["metrics"]["rmse_rel"], "loss": r.result["metrics"]["loss"],
                "projection": [truth["camera"]["projection"], r.result["camera"]["projection"]],
                "vig": [truth["vignetting"]["rim_value"], r.result["camera"].get("vignetting")],
                "gains": [r.result["camera"].get("gain_red"), r.result["camera"].get("gain_blue")],

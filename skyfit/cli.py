@@ -512,8 +512,10 @@ def _add_fit_options(p, D) -> None:
     p.add_argument("--per-observation", help="comma list of nuisance parameters with one value per observation")
     p.add_argument("--integrator", help=f"NAME[:key=value,...] (default {D.integrator})")
     p.add_argument("--orders", type=int, help="scattering orders (1 = single scattering, the default; >= 2 adds multiple scattering)")
-    p.add_argument("--multiple", choices=("hillaire", "bruneton"),
-                   help="with --orders >= 2: Hillaire 2020's LUT (default, rebuilt per evaluation) or Bruneton's tables (reduced sizes)")
+    p.add_argument("--multiple", choices=("hillaire", "bruneton", "bruneton_lagged"),
+                   help="with --orders >= 2: Hillaire 2020's LUT (default, rebuilt per evaluation), Bruneton's tables (reduced "
+                        "sizes, rebuilt per evaluation) or bruneton_lagged (Bruneton's orders >= 2 as a factor on the live single "
+                        "scattering, frozen per fit and refreshed at its result; docs/fitting.md)")
     p.add_argument("--view-samples", type=int, help=f"samples of the view-ray integral (default {D.view_samples})")
     p.add_argument("--rule", help=f"outer quadrature rule (default {D.rule})")
     p.add_argument("--accuracy", help="auto (model error <= 1/3 of the data's median relative sigma), de=X or rel=X: "

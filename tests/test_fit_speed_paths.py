@@ -165,6 +165,7 @@ def test_cached_lut_gradients(base, monkeypatch, chunks):
     """gradcheck of the cached path (one chunk, and several checkpointed chunks); equal to the row loop's gradient."""
     if chunks:
         monkeypatch.setattr(hillaire, "_CHUNK_ELEMENTS", 3 * 4 * 2)  # 3 texels per chunk of 4 directions x 2 steps
+        monkeypatch.setattr(hillaire, "_CHECKPOINT_ELEMENTS", 0)  # and each chunk checkpointed
     atm = load_atmosphere("earth", [550.0])
     names = ["rayleigh_scattering", "mie_scattering", "mie_extinction", "mie_scale_height", "ground_albedo"]
     base_v = [getattr(atm, n).clone() for n in names]
@@ -187,3 +188,13 @@ def test_cached_lut_gradients(base, monkeypatch, chunks):
 def test_unknown_lut_method_is_refused(base):
     with pytest.raises(ValueError, match="unknown Hillaire LUT method 'fast'; valid: cached, rows"):
         hillaire_lut(base, size=(2, 2), directions=2, samples=2, method="fast")
+
+
+def test_optimiser_setting_reaches_the_options():
+    from skyfit.fit.problem import fit_settings
+
+    assert fit_settings(None).options().method == "auto"
+    assert fit_settings({"optimiser": "lbfgs"}).options().method == "lbfgs"
+    assert fit_settings({"optimiser": "lm"}, {"optimiser": "lbfgs"}).options().method == "lbfgs"  # a flag wins
+    with pytest.raises(FitError, match="fit.optimiser must be one of auto, lm, lbfgs, got 'newton'"):
+        fit_settings({"optimiser": "newton"}, where="config k.yaml")

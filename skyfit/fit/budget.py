@@ -14,17 +14,21 @@ the unconstrained vector x at the optimum x*, so that the reported sigma is the 
        dx = -H^-1 g,   g = d/dx [ -log L(m_fit(x) + delta) ] at x*
 
    (H the Laplace Hessian; for the Gaussian likelihood g = -J^T W delta and this is the
-   Gauss-Newton shift (J^T W J)^-1 J^T W delta). The fitted value is left as it is; dx is
-   reported (``numerical_shift``) and treated as an error: cov += dx dx^T.
+   Gauss-Newton shift (J^T W J)^-1 J^T W delta). Where the model is not linear along dx
+   (:func:`nonlinearity` > :data:`NONLINEAR`) up to ``refits`` lagged refits replace the step
+   (:func:`refit_shift`), and what an unconverged iteration has left adds to the error. The
+   fitted value is left as it is; dx is reported (``numerical_shift``) and treated as an
+   error: cov += dx dx^T.
 2. **Discrepancy** (what no setting of this model family resolves, e.g. a two-term phase
    function fitted with one term). A relative error floor f is added in quadrature to each
    element's sigma, sigma'^2 = sigma^2 + (f m)^2, with f chosen so that the chi^2 of the
    residuals left after the numerical correction (o - m_fit(x* + dx) - delta) equals its
-   degrees of freedom, n_elements - P (Birge 1932's ratio, spread as a relative floor as in
-   e.g. the PDG's scale factor). f = 0 when chi^2 <= dof. The Hessian with sigma' gives the
-   noise + discrepancy covariance.
+   degrees of freedom, n_elements - P (Birge 1932's ratio, spread as a relative floor). f = 0
+   when chi^2 <= dof. Its covariance is the Gauss-Newton (J^T W' J)^-1 with sigma' minus that
+   with sigma (positive semi-definite; the full Hessian with sigma' need not be, x* not being
+   the optimum of the inflated problem), added to the noise's H^-1.
 
-Total: cov_x = H'^-1 + dx dx^T. ``sigma`` of the result is this total; ``budget`` holds the
+Total: cov_x = H^-1 + [(J^T W' J)^-1 - (J^T W J)^-1] + dx dx^T. ``sigma`` of the result is this total; ``budget`` holds the
 parts (``sigma_noise``, ``sigma_numerical``, ``sigma_discrepancy``), the floor, chi^2/dof and
 the shift. The floor is a white-noise model: model errors correlated over the sky are what
 the numerical term is for; what is left after it is small where the fit's family contains

@@ -98,8 +98,9 @@ def covariance_from_hessian(H: Tensor) -> tuple[Tensor, bool, float]:
     if not bool(torch.isfinite(H).all()):
         raise FitError("Laplace: the Hessian at the fit is not finite")
     evals = torch.linalg.eigvalsh(H)
-    pd = bool(evals.min() > 0)
-    cov_x = torch.cholesky_inverse(torch.linalg.cholesky(H)) if pd else torch.linalg.pinv(H, hermitian=True)
+    L, info = torch.linalg.cholesky_ex(H)
+    pd = bool(evals.min() > 0) and int(info) == 0  # an eigenvalue at rounding level can fail the factorisation
+    cov_x = torch.cholesky_inverse(L) if pd else torch.linalg.pinv(H, hermitian=True)
     return 0.5 * (cov_x + cov_x.T), pd, float(evals.min())
 
 

@@ -29,7 +29,7 @@ from .parameters import FitError, Parameterisation
 Renderer = Callable[[Tensor, Tensor], Tensor]
 
 
-MULTIPLE_METHODS = ("hillaire", "bruneton")
+MULTIPLE_METHODS = ("hillaire", "bruneton", "bruneton_lagged")
 
 
 @dataclasses.dataclass
@@ -45,7 +45,10 @@ class SkyModel:
         chunk_bytes: working memory per chunk (None: the renderer's default). [bytes]
         multiple: "hillaire" (Hillaire 2020's LUT, rebuilt per atmosphere; all orders >= 2
             by its geometric series, so ``orders`` only switches it on) or "bruneton"
-            (Bruneton & Neyret 2008 tables with ``orders`` orders at ``table_sizes``).
+            (Bruneton & Neyret 2008 tables with ``orders`` orders at ``table_sizes``, rebuilt per
+            atmosphere) or "bruneton_lagged" (the renderer gives single scattering; the caller holds
+            the tables' orders >= 2 as a factor on it, frozen per fit and refreshed at its result:
+            ``FitProblem.frozen_factor``, :func:`skyfit.fit.photo.lagged_fit`; docs/fitting.md).
         lut_size, lut_directions, lut_samples: Hillaire LUT (n_h, n_mu_s), sphere directions
             and steps per direction (docs/hillaire.md; the paper: 32 x 32, 64, 20). The
             defaults 16 x 16 texels, 64 directions, 20 steps with a 64 x 16 sun-transmittance
@@ -88,11 +91,21 @@ class SkyModel:
         if self.table_sizes is not None:
             self.table_sizes = tuple(int(v) for v in self.table_sizes)
 
+    @property
+    def lagged(self) -> bool:
+        """Multiple scattering held outside the renderer: ``bruneton_lagged``'s factor, frozen by the caller."""
+        return self.orders > 1 and self.multiple == "bruneton_lagged"
+
+    def factor_model(self) -> "SkyModel":
+        """The Bruneton tables behind ``bruneton_lagged``'s factor (:func:`skyfit.fit.photo.freeze_tables`)."""
+        return dataclasses.replace(self, multiple="bruneton")
+
     def tables(self, atm: Atmosphere):
-        """Multiple-scattering tables for ``atm`` (None for single scattering)."""
+        """Multiple-scattering tables for ``atm`` (None for single scattering, and for ``bruneton_lagged``,
+        whose factor on the single scattering the fit freezes and refreshes: :func:`skyfit.fit.photo.lagged_fit`)."""
         from ..scattering.bruneton_tables import TableSizes
 
-        if self.orders == 1:
+        if self.orders == 1 or self.lagged:
             return None
         if self.multiple == "hillaire":
             from ..scattering.hillaire import hillaire_lut
@@ -114,7 +127,7 @@ class SkyModel:
         """
         from ..render.sky import render_vectors
 
-        if self.orders > 1:
+        if self.orders > 1 and not self.lagged:
             tables = self.tables(atm) if tables is None else tables
 
             def render_ms(directions: Tensor, sun: Tensor) -> Tensor:
@@ -126,9 +139,9 @@ class SkyModel:
             return render_ms
         column_fn = prepare_columns(self.integrator, atm)
 
-        def render(directions: Tensor, sun: Tensor) -> Tensor:
+        def render(directions: Tensor, sun: Tensor) -> Tensor:  # single scattering (bruneton_lagged: its live part)
             return render_vectors(
-                atm, directions, sun, self.integrator, altitude_m, self.orders, view_samples=self.view_samples,
+                atm, directions, sun, self.integrator, altitude_m, 1, view_samples=self.view_samples,
                 rule=self.rule, ground=self.ground, chunk_bytes=self.chunk_bytes, column_fn=column_fn,
                 spacing=self.spacing,
             )
@@ -257,6 +270,9 @@ class FitProblem:
         ``1 + vignetting r^2`` at each sample's normalised image radius r
         (:attr:`Observation.image_radius`); other data are left as rendered.
         """
+        if self.model.lagged and self.frozen_factor is None:  # spectra() alone is the live single scattering
+            raise FitError("multiple: bruneton_lagged needs its multiple-scattering factor frozen first "
+                           "(skyfit fit and evaluate do it; skyfit.fit.photo.freeze_tables)")
         out = []
         for i, (s, m, o) in enumerate(zip(self.spectra(phys), self.matrices, self.observations)):
             p = s @ m

@@ -58,7 +58,7 @@ TARGET_SAMPLES = 1000
 """About this many blocks inside the lens circle are fitted, whatever the photo's size."""
 QUICK_SAMPLES = 400
 """Blocks of the short fits that choose among projections or starting headings."""
-MS_REFRESHES = 5
+MS_REFRESHES = 3
 """At most this many fits with the multiple-scattering tables frozen and refreshed (:func:`lagged_fit`)."""
 PHOTO_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "gain_red", "gain_blue", "vignetting",
               "sun_azimuth_offset", "camera_tilt_north", "camera_tilt_east")
@@ -210,7 +210,8 @@ def _luminance(rgb: np.ndarray) -> np.ndarray:
 
 def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camera: FisheyeCamera | dict | str | Path | None = None,
                   mask: np.ndarray | None = None, exposures: Sequence[float] | None = None, linear: bool = False,
-                  response: str | None = None, projections: Sequence[str] = CLASSICAL_PROJECTIONS) -> PhotoScene:
+                  response: str | None = None, projections: Sequence[str] = CLASSICAL_PROJECTIONS,
+                  sun_mask_max_deg: float | None = SUN_MASK_MAX_DEG) -> PhotoScene:
     """Read the photo, place the sun, find the camera and the masks (steps 1-4 of the module docstring).
 
     Args:
@@ -221,6 +222,7 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
         mask: (H, W) bool, True = ignore (the user's own).
         exposures, linear, response: for :func:`read_photo`.
         projections: the candidate projections when the camera is not given.
+        sun_mask_max_deg: largest radius of the sun's mask (:func:`scene_masks`). [deg]
 
     Raises:
         PhotoFitError / PhotoError / CalibrationError (ValueErrors): one line naming the file and the problem.
@@ -264,7 +266,7 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
         seconds["calibrate"] = _now() - t1
         if detected is None:
             notes.append("the sun is not seen in the photo (hidden or outside the view): the heading comes from the sky pattern")
-        masks = scene_masks(photo, cam, detected, sz, sa, mask)
+        masks = scene_masks(photo, cam, detected, sz, sa, mask, sun_mask_max_deg)
     except CalibrationError as e:
         raise PhotoFitError(f"photo {src}: {e}") from None
     if not bool((~_union(masks)).any()):
@@ -291,15 +293,19 @@ def _union(masks: dict) -> np.ndarray:
 
 
 def scene_masks(photo: LinearPhoto, cam: FisheyeCamera, detected, sun_zenith_deg: float, sun_azimuth_deg: float,
-                user: np.ndarray | None = None) -> dict:
-    """(H, W) bool masks, True = not used: outside the lens, below the horizon, sun and flare, obstacles, user's."""
+                user: np.ndarray | None = None, sun_mask_max_deg: float | None = SUN_MASK_MAX_DEG) -> dict:
+    """(H, W) bool masks, True = not used: outside the lens, below the horizon, sun and flare, obstacles, user's.
+
+    ``sun_mask_max_deg``: largest radius of the sun's mask (:data:`skyfit.camera.masks.SUN_MASK_MAX_DEG`: the
+    saturated aureole beyond it is censored bounds on the aerosol; None: the whole saturated region + margin). [deg]
+    """
     h, w = photo.rgb.shape[:2]
     with torch.no_grad():
         vec, valid = cam.pixel_vectors(torch.float64)
     valid = valid.numpy() & photo.valid
     up = np.where(valid, vec[..., 2].numpy(), -1.0)
     masks = {"outside": ~valid, "horizon": valid & (up <= math.sin(math.radians(2.0)))}
-    masks["sun"] = sun_mask((h, w), detected, cam, sun_zenith_deg, sun_azimuth_deg, max_radius_deg=SUN_MASK_MAX_DEG) & valid
+    masks["sun"] = sun_mask((h, w), detected, cam, sun_zenith_deg, sun_azimuth_deg, max_radius_deg=sun_mask_max_deg) & valid
     rgb = np.where(np.isfinite(photo.rgb), photo.rgb, 0.0)
     masks["obstacles"] = obstacle_mask(rgb, valid & ~masks["sun"], cam) & valid
     if user is not None:

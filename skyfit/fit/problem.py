@@ -128,7 +128,7 @@ SETTING_RANGES: dict[str, tuple[str, float, float, str]] = {
 }
 """Type and range of the numeric fit settings, checked with the setting's name and where it came from
 before any work (docs/reliability.md)."""
-_CHOICES = {"multiple": ("hillaire", "bruneton"), "select_sigma": ("scaled", "known"), "dtype": tuple(DTYPES),
+_CHOICES = {"multiple": ("hillaire", "bruneton", "bruneton_lagged"), "select_sigma": ("scaled", "known"), "dtype": tuple(DTYPES),
             "optimiser": METHODS,
             "sigma": ("total", "noise")}
 _STRINGS = ("loss", "integrator", "rule", "wavelengths", "accuracy")
@@ -379,10 +379,12 @@ def run_estimate(model: SkyModel, observations: Sequence[Observation], base: Atm
     device = str(base.device)
     est = single_scattering_estimate(rays, n_w, m.view_samples, m.integrator.settings(), dtype_bytes=nbytes,
                                      evaluations=evaluations, autograd=autograd, device=device, what=what)
-    if m.orders > 1 and m.multiple == "bruneton":
+    if m.orders > 1 and m.multiple in ("bruneton", "bruneton_lagged"):
         shape = tuple(m.table_sizes or m.REDUCED_TABLES)[4:]
         t = tables_estimate(shape, n_w, m.orders, dtype_bytes=nbytes, device=device)
-        grow = AUTOGRAD if autograd else 1.0
+        grow = AUTOGRAD if autograd and not m.lagged else 1.0
+        if m.lagged:  # a few builds per fit (lagged_fit's refreshes), not one per evaluation
+            evaluations = min(evaluations, 6.0)
         est = Estimate(what, max(est.memory_bytes, t.memory_bytes * grow * batch),
                        est.seconds + t.seconds * grow * batch * evaluations, f"{est.detail}; tables {t.detail}")
     elif m.orders > 1:  # Hillaire's LUT: directions x steps for each texel, per evaluation

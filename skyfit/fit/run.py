@@ -58,7 +58,12 @@ def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overri
     check(prep.estimate(evaluations=s.starts * (s.adam_steps + 2 * s.max_iter)), force=force, max_seconds=MAX_RUN_SECONDS,
           device=str(device), hint="reduce --max-samples, --view-samples, the --integrator's samples, --starts, --max-iter or --adam-steps, "
                "or add --force")
-    res = fit(problem, s.options(progress))
+    if problem.model.lagged:  # Bruneton's orders >= 2 as a factor, frozen per fit and refreshed at its result
+        from .photo import lagged_fit
+
+        res = lagged_fit(problem, s.options(progress), bruneton=problem.model.factor_model())
+    else:
+        res = fit(problem, s.options(progress))
     return write_result(problem, res, out, command="fit", settings=dataclasses.asdict(s), config=config,
                         config_source=config_source, base_dist=prep.base_dist, dtype=s.dtype, t0=t0, laplace=laplace,
                         plots=plots)
@@ -140,11 +145,16 @@ def run_evaluate(result_path: str | Path, data: Sequence[str | Path], *, refit_n
     problem = prep.problem(free, per, {**atm_values, **nuis_values})
     param = problem.param
     conv = None
+    x = param.initial_vector(dtype, prep.base.device)
+    if problem.model.lagged:  # the factor at the fitted atmosphere (and the sun geometry it sees)
+        from .photo import freeze_tables
+
+        freeze_tables(problem, x, problem.model.factor_model())
     if refit_nuisance:
         r = fit(problem, FitOptions(starts=1, adam_steps=10, max_iter=60, progress=progress))
         x, conv = r.x, r.convergence
-    else:
-        x = param.initial_vector(dtype, prep.base.device)
+        if problem.model.lagged:
+            freeze_tables(problem, x, problem.model.factor_model())
     metrics = problem.metrics(x)
     phys = param.physical_dict(x)
     return {
