@@ -15,12 +15,11 @@ import json
 import math
 import time
 
-import miepython
 import numpy as np
 import torch
-from scipy.integrate import quad_vec
 
-from skyfit.atmosphere.mie import LN_X_STEP, LOGNORMAL_RADIUS_RANGE_M, _table_block, lognormal_mie_optics, mie_size_table
+from skyfit.tools.reference import lognormal_mie_quad
+from skyfit.atmosphere.mie import LN_X_STEP, _table_block, lognormal_mie_optics, mie_size_table
 
 M = (1.45, 0.005)
 D64 = torch.float64
@@ -28,22 +27,7 @@ D64 = torch.float64
 
 def reference(r_g: float, sigma_g: float, lam_nm: float) -> tuple[float, float, float]:
     """C_ext, C_sca, <g> of the truncated log-normal: quad_vec over ln r, miepython at each radius."""
-    s = math.log(sigma_g)
-    lo, hi = (math.log(v) for v in LOGNORMAL_RADIUS_RANGE_M)
-    centre = math.log(r_g) + 2 * s * s
-    a, b = max(lo, centre - 7 * s), min(hi, centre + 7 * s)
-    m = complex(M[0], -M[1])
-
-    def f(t):
-        r = math.exp(t)
-        n = math.exp(-0.5 * ((t - math.log(r_g)) / s) ** 2) / (s * math.sqrt(2 * math.pi))
-        qe, qs, _, g = miepython.efficiencies_mx(m, 2 * math.pi * r / (lam_nm * 1e-9))
-        area = math.pi * r * r * n
-        return np.array([area * qe, area * qs, area * qs * g])
-
-    val, _ = quad_vec(f, a, b, epsrel=1e-7, epsabs=0, limit=400)
-    number = 0.5 * (math.erf((hi - math.log(r_g)) / (s * math.sqrt(2))) - math.erf((lo - math.log(r_g)) / (s * math.sqrt(2))))
-    return val[0] / number, val[1] / number, val[2] / val[1]
+    return lognormal_mie_quad(r_g, sigma_g, lam_nm, M)
 
 
 def main() -> None:

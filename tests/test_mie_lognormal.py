@@ -15,11 +15,12 @@ import miepython
 import numpy as np
 import pytest
 import torch
-from scipy.integrate import quad, quad_vec
+from scipy.integrate import quad
 
 from skyfit.atmosphere import atmosphere_from_config
+from skyfit.tools.reference import lognormal_mie_quad
 from skyfit.atmosphere.mie import (
-    LN_X_STEP, LOGNORMAL_RADIUS_RANGE_M, PHASE_COSINES, effective_radius, effective_variance, lognormal_mie_optics,
+    LN_X_STEP, PHASE_COSINES, effective_radius, effective_variance, lognormal_mie_optics,
     mie_size_table,
 )
 from skyfit.fit import Parameterisation
@@ -79,21 +80,7 @@ def test_extinction_paradox_and_phase_against_miepython_s1_s2():
 
 def _reference_averages(r_g, sigma_g, lam_nm):
     """C_ext, C_sca, <g> of the truncated log-normal by scipy quad_vec over ln r with miepython at each radius."""
-    s = math.log(sigma_g)
-    lo, hi = (math.log(v) for v in LOGNORMAL_RADIUS_RANGE_M)
-    centre = math.log(r_g) + 2 * s * s  # area-weighted median
-    a, b = max(lo, centre - 7 * s), min(hi, centre + 7 * s)  # beyond: < 1e-11 of the area
-
-    def f(t):
-        r = math.exp(t)
-        n = math.exp(-0.5 * ((t - math.log(r_g)) / s) ** 2) / (s * math.sqrt(2 * math.pi))
-        qe, qs, _, g = miepython.efficiencies_mx(M_MIE, 2 * math.pi * r / (lam_nm * 1e-9))
-        area = math.pi * r * r * n
-        return np.array([area * qe, area * qs, area * qs * g])
-
-    val, _ = quad_vec(f, a, b, epsrel=1e-7, epsabs=0, limit=400)
-    number = 0.5 * (math.erf((hi - math.log(r_g)) / (s * math.sqrt(2))) - math.erf((lo - math.log(r_g)) / (s * math.sqrt(2))))
-    return val[0] / number, val[1] / number, val[2] / val[1]
+    return lognormal_mie_quad(r_g, sigma_g, lam_nm, M)
 
 
 def test_distribution_averages_against_quad():

@@ -244,13 +244,17 @@ Jacobian column is small (a sigmoid near its end) takes a step that lands it on 
 a synthetic ground albedo went from 0.15 to 1.0 in one step (tests/test_fit_recovery_ms.py, sun 75 deg)."""
 
 
-def _run_start_lm(problem: FitProblem, x0: Tensor, opt: FitOptions, bar, label: str) -> dict:
+def _start_point(problem: FitProblem, x0: Tensor, opt: FitOptions) -> tuple[float, list[float], Tensor, Tensor]:
+    """(clock, loss history, x, x at the start) of one start: x0 with the exposure profiled when asked."""
     t0 = time.perf_counter()
-    history: list[float] = []
     x = x0.detach().clone()
     if opt.profile_exposure:
         x = problem.profile_exposure(x)
-    x_start = x.clone()
+    return t0, [], x, x.clone()
+
+
+def _run_start_lm(problem: FitProblem, x0: Tensor, opt: FitOptions, bar, label: str) -> dict:
+    t0, history, x, x_start = _start_point(problem, x0, opt)
     n_el = max(problem.n_elements, 1)
     atmospheric = _atmosphere_columns(problem)
     evals = 0
@@ -338,12 +342,7 @@ def _run_start_lm(problem: FitProblem, x0: Tensor, opt: FitOptions, bar, label: 
 
 
 def _run_start(problem: FitProblem, x0: Tensor, opt: FitOptions, bar, label: str) -> dict:
-    t0 = time.perf_counter()
-    history: list[float] = []
-    x = x0.detach().clone()
-    if opt.profile_exposure:
-        x = problem.profile_exposure(x)
-    x_start = x.clone()
+    t0, history, x, x_start = _start_point(problem, x0, opt)
 
     def show(v: float) -> None:
         history.append(v)
