@@ -2,7 +2,7 @@
 
     .venv/bin/python scripts/export_lut_speed.py --baseline c3bb8a0
 
-Makes one RESULT.json (a small Earth sky rendered and fitted with cheap settings; its model's
+Makes one RESULT.json with the baseline's code (a small Earth sky rendered and fitted with cheap settings; its model's
 wavelengths, 3 by default here), then runs `skyfit export-lut RESULT.json --out DIR` (default layout,
 2017's table sizes, 4 orders) as a child process with this checkout's code and with the code of
 ``--baseline`` (a detached worktree under /tmp), alternating, ``--repeats`` times each. Prints wall
@@ -52,11 +52,12 @@ def main() -> None:
 
     tmp = Path(tempfile.mkdtemp(prefix="export_lut_speed_"))
     sky, result = tmp / "sky.exr", tmp / "RESULT.json"
-    _skyfit(ROOT, "render", "earth", "--out", str(sky), "--size", "12", "--sun-zenith", "40", "--wavelengths", args.wavelengths,
+    old = _worktree(args.baseline)  # the older code writes the RESULT.json, which both versions read
+    _skyfit(old, "render", "earth", "--out", str(sky), "--size", "12", "--sun-zenith", "40", "--wavelengths", args.wavelengths,
             "--spectral", "--dtype", "float64", threads=args.threads)
-    _skyfit(ROOT, "fit", str(sky), "--config", "earth", "--out", str(result), "--free", "mie_g,exposure", "--no-plots",
+    _skyfit(old, "fit", str(sky), "--config", "earth", "--out", str(result), "--free", "mie_g,exposure", "--no-plots",
             "--integrator", "chapman", "--view-samples", "8", threads=args.threads)
-    codes = {"now": ROOT, args.baseline: _worktree(args.baseline)}
+    codes = {"now": ROOT, args.baseline: old}
     rows: dict[str, list[tuple[float, float, float]]] = {k: [] for k in codes}
     for _ in range(args.repeats):
         for name, code in codes.items():
