@@ -45,7 +45,8 @@ def data(tmp_path_factory):
         (d / f"{name}.yaml").write_text(text)
         assert main(["render", str(d / f"{name}.yaml"), "--size", "12", "--time", f"2013-05-27T10:{15 * i:02d}:00-04:00",
                      "--location", "42.44,-76.48,250", "--wavelengths", "450:650:100", "--integrator", "gauss:samples=8",
-                     "--view-samples", "4", "--dtype", "float64", "--spectral", "--out", str(d / f"{name}.exr")]) == 0
+                     "--view-samples", "4", "--rule", "trapezoid", "--spacing", "uniform",  # the fit's renderer (FAST_FLAGS)
+                     "--dtype", "float64", "--spectral", "--out", str(d / f"{name}.exr")]) == 0
         (d / f"{name}.yaml").unlink()
     (d / "bad.exr").write_bytes(b"this is not an OpenEXR file")
     return d
