@@ -144,32 +144,10 @@ def stage_cross(work: Path, v: str, sources: list[str]) -> None:
 
 
 def _sun_share(res: dict, cap: Path) -> float:
-    """Share of the squared error in the 5 samples nearest the sun, at the fitted values."""
-    import dataclasses
+    """Share of the squared error in the 5 samples nearest the sun, at the fitted values (the fit's own model)."""
+    from kider_ms_residual import evaluate  # scripts/ is on the path of a script run from it
 
-    from skyfit.fit.parameters import NUISANCE as ALL_NUISANCE
-    from skyfit.fit.problem import fit_settings, load_data, prepare
-    from skyfit.fit.results import fitted_atmosphere_values, model_from_result
-
-    s = dataclasses.replace(fit_settings(res.get("settings"), None), max_samples=None)
-    obs = load_data([cap], s, None, None)
-    prep = prepare(obs, res["config"], s, model=model_from_result(res))
-    values = fitted_atmosphere_values(res)
-    for n in ALL_NUISANCE:
-        if n in res["parameters"] and n != "noise_scale":
-            values[n] = [res["parameters"][n]]
-    problem = prep.problem([], [n for n in ALL_NUISANCE if n != "noise_scale"], values)
-    with torch.no_grad():
-        pred = problem.predict(problem.param.initial_vector(s.torch_dtype))[0]
-    o = problem.observations[0]
-    m = o.mask.bool()
-    r = (pred - o.values)[m]
-    d = o.directions[m]
-    sz, sa = o.sun_zenith, o.sun_azimuth
-    sun = torch.stack([torch.sin(sz) * torch.sin(sa), torch.sin(sz) * torch.cos(sa), torch.cos(sz)], -1)  # (3,) or (N, 3)
-    sun = sun[m] if sun.dim() == 2 else sun
-    sq = (r * r).sum(1)
-    return float(sq[torch.argsort(-(d * sun).sum(-1))[:5]].sum() / sq.sum())
+    return evaluate(res, cap, {}, None)["sun5_share"]
 
 
 def stage_report(work: Path, variants: list[str], orientation_work: Path) -> None:
