@@ -13,6 +13,8 @@ camera tilt). Variants:
 - ``hg``: Henyey-Greenstein, exponential profile (the config's model);
 - ``tthg``, ``bl``, ``tthg_bl``: + the two-term phase (g2, f), + the boundary layer (h_mix), both;
 - ``mie``: the log-normal Mie phase (r_g, sigma_g in place of g and alpha; m = 1.45 + 0.005i);
+- ``mie2``: + a coarse mode (its median radius and the fine-mode fraction of the 550 nm extinction free, its
+  sigma_g 1.9); ``mie2_bl``: that + the boundary layer;
 - any of them + ``_b``: multiple scattering from Bruneton's 4 orders (``multiple: bruneton_lagged``) instead of
   the config's Hillaire LUT.
 
@@ -42,6 +44,12 @@ VARIANTS = {  # (added, dropped) atmosphere values
     "bl": (["mie_mixing_height"], []),
     "tthg_bl": (["mie_g2", "mie_hg_weight", "mie_mixing_height"], []),
     "mie": (["mie_median_radius", "mie_geometric_sigma"], ["mie_g", "mie_angstrom_alpha"]),
+    "mie2": (["mie_median_radius", "mie_geometric_sigma", "mie_coarse_radius", "mie_fine_fraction"],
+             ["mie_g", "mie_angstrom_alpha"]),
+    "mie2_fixr": (["mie_median_radius", "mie_geometric_sigma", "mie_coarse_radius", "mie_fine_fraction"],
+                  ["mie_g", "mie_angstrom_alpha", "rayleigh_scale"]),
+    "mie2_bl": (["mie_median_radius", "mie_geometric_sigma", "mie_coarse_radius", "mie_fine_fraction", "mie_mixing_height"],
+                ["mie_g", "mie_angstrom_alpha"]),
 }
 
 

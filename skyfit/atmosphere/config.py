@@ -14,7 +14,8 @@ Config layout (all SI; see configs/earth.yaml for a commented example)::
          # phase: lognormal_mie takes median_radius_um, geometric_sigma and refractive_index [n, k] (m = n + ik) and
          # derives the extinction's spectral shape, the single-scattering albedo and the phase from them (Mie theory,
          # skyfit/atmosphere/mie.py); extinction_550 or angstrom_beta still set the amount; angstrom_alpha,
-         # single_scattering_albedo and g are refused with it.
+         # single_scattering_albedo and g are refused with it. A coarse mode adds coarse_median_radius_um,
+         # coarse_geometric_sigma and fine_fraction (the fine mode's share of the extinction at 550 nm).
     ozone: {column_du: 300, layer_m: [10000, 25000, 40000], cross_section: ozone_cross_section_233K}
     ground: {albedo: 0.1}      # or {table: grass_albedo}
     sun: {distance_au: 1.0}
@@ -87,6 +88,7 @@ SECTION_KEYS: dict[str, frozenset[str]] = {
     "mie": frozenset({
         "angstrom_alpha", "angstrom_beta", "extinction_550", "single_scattering_albedo", "scale_height_m", "g", "phase",
         "g2", "hg_weight", "profile", "mixing_height_m", "median_radius_um", "geometric_sigma", "refractive_index",
+        "coarse_median_radius_um", "coarse_geometric_sigma", "fine_fraction",
     }),
     "ozone": frozenset({"column_du", "layer_m", "cross_section"}),
     "ground": frozenset({"albedo", "table"}),
@@ -302,6 +304,8 @@ def atmosphere_from_config(
             mie_median_radius=None if lognormal is None else T(lognormal["median_radius_m"]),
             mie_geometric_sigma=None if lognormal is None else T(lognormal["geometric_sigma"]),
             mie_refractive_index=None if lognormal is None else lognormal["refractive_index"],
+            **({} if lognormal is None or lognormal["coarse"] is None else
+               dict(zip(("mie_coarse_radius", "mie_coarse_sigma", "mie_fine_fraction"), (T(v) for v in lognormal["coarse"])))),
             config=copy.deepcopy(cfg),
         )
     except ValueError as e:
@@ -310,6 +314,9 @@ def atmosphere_from_config(
 
 LOGNORMAL_KEYS = ("median_radius_um", "geometric_sigma", "refractive_index")
 """Keys of the ``mie`` section that belong to ``phase: lognormal_mie`` (all three required there)."""
+COARSE_KEYS = ("coarse_median_radius_um", "coarse_geometric_sigma", "fine_fraction")
+"""Keys of an optional coarse mode of ``phase: lognormal_mie`` (all three or none): its number median radius, its
+sigma_g and the fine mode's share of the extinction at 550 nm."""
 LOGNORMAL_DERIVED_KEYS = ("angstrom_alpha", "single_scattering_albedo", "g")
 """Keys the lognormal_mie phase derives from the size distribution and refuses."""
 
@@ -317,7 +324,7 @@ LOGNORMAL_DERIVED_KEYS = ("angstrom_alpha", "single_scattering_albedo", "g")
 def _lognormal_section(mie: dict, phase: str, lam: np.ndarray) -> dict | None:
     """The lognormal_mie optics on ``lam`` + [550, 1000] nm (float64 numpy) and the section's values, or None
     for another phase; ConfigError for a key that does not belong or a value out of range."""
-    present = [k for k in LOGNORMAL_KEYS if k in mie]
+    present = [k for k in LOGNORMAL_KEYS + COARSE_KEYS if k in mie]
     if phase != "lognormal_mie":
         if present:
             raise ConfigError(f"mie.{', mie.'.join(present)} belong to phase: lognormal_mie, not {phase!r}")
@@ -332,16 +339,27 @@ def _lognormal_section(mie: dict, phase: str, lam: np.ndarray) -> dict | None:
     raw = mie.get("refractive_index")
     if not isinstance(raw, (list, tuple)) or len(raw) != 2:
         raise ConfigError(f"mie.refractive_index must be [real, imaginary] (m = n + ik), got {raw!r}")
+    given = [k for k in COARSE_KEYS if k in mie]
+    if given and len(given) != len(COARSE_KEYS):
+        raise ConfigError(f"mie: a coarse mode needs all of {', '.join(COARSE_KEYS)}; missing "
+                          f"{', '.join(k for k in COARSE_KEYS if k not in mie)}")
+    coarse = None
+    if given:
+        coarse = (_get(mie, "coarse_median_radius_um", None, "mie") * 1e-6, _get(mie, "coarse_geometric_sigma", None, "mie"),
+                  _get(mie, "fine_fraction", None, "mie"))
     try:
         index = check_refractive_index(raw)
         r = torch.tensor(r_um * 1e-6, dtype=torch.float64)
+        if coarse is not None and not 1.0 < coarse[1] <= 4.0:
+            raise ValueError(f"coarse_geometric_sigma must be in (1, 4], got {coarse[1]:g}")
         optics = lognormal_mie_optics(torch.as_tensor(np.concatenate([lam, [550.0, 1000.0]]), dtype=torch.float64),
-                                      r, torch.tensor(sigma, dtype=torch.float64), index)
+                                      r, torch.tensor(sigma, dtype=torch.float64), index,
+                                      None if coarse is None else tuple(torch.tensor(v, dtype=torch.float64) for v in coarse))
     except ValueError as e:
         raise ConfigError(f"mie (phase lognormal_mie): {e}") from None
     with torch.no_grad():
         return {"extinction": optics.extinction.numpy(), "ssa": optics.ssa.numpy(), "asymmetry": optics.asymmetry.numpy(),
-                "median_radius_m": r_um * 1e-6, "geometric_sigma": sigma, "refractive_index": index}
+                "median_radius_m": r_um * 1e-6, "geometric_sigma": sigma, "refractive_index": index, "coarse": coarse}
 
 
 SHIPPED_CONFIGS = Path(__file__).resolve().parents[1] / "configs"

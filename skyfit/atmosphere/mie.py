@@ -249,8 +249,63 @@ WINDOW_SIGMAS: float = 8.0
 left out of the sums [1]."""
 
 
+COARSE_RADIUS_RANGE_M: tuple[float, float] = (0.1e-6, 10e-6)
+"""Median radii of the number distribution a coarse mode accepts [m]: AERONET's coarse modes have volume median
+radii 1.5-4 um with ln sigma_g 0.6-0.8 (Dubovik et al. 2002, J. Atmos. Sci. 59, 590, Table 1), number medians
+0.2-1.3 um."""
+
+
 def lognormal_mie_optics(wavelengths_nm: Tensor, median_radius: Tensor, geometric_sigma: Tensor,
-                         refractive_index) -> LognormalOptics:
+                         refractive_index, coarse: tuple[Tensor, Tensor, Tensor] | None = None) -> LognormalOptics:
+    """Mie optics of the aerosol: one log-normal mode (:func:`mode_mie_optics`) or, with ``coarse``, a fine and a
+    coarse mode mixed.
+
+    ``coarse = (r_c, sigma_c, eta)``: a second log-normal mode of the same spheres and the fine-mode fraction
+    eta in [0, 1] of the aerosol's extinction at 550 nm (the quantity AERONET's spectral deconvolution reports
+    at 500 nm; O'Neill et al. 2003, J. Geophys. Res. 108, 4559). Per unit extinction at 550 nm the modes hold
+    n_f = eta / C_ext,f(550) and n_c = (1 - eta) / C_ext,c(550) particles, so that per particle of the mixture
+
+        C(lambda) = (n_f C_f(lambda) + n_c C_c(lambda)) / (n_f + n_c)         (extinction and scattering)
+        p(nu, lambda) = (n_f C_sca,f p_f + n_c C_sca,c p_c) / (n_f C_sca,f + n_c C_sca,c)
+
+    and the asymmetry likewise (Hansen & Travis 1974, Sec. 2: averages over any size distribution weight each
+    particle's phase by its scattering cross-section; a sum of two modes is one such distribution). AERONET
+    retrieves every site's aerosol as two such modes (Dubovik et al. 2002): the fine mode sets the Angstrom
+    exponent, the coarse mode the aureole's forward peak, which one mode cannot give both of.
+    """
+    fine = mode_mie_optics(wavelengths_nm, median_radius, geometric_sigma, refractive_index)
+    if coarse is None:
+        return fine
+    rc, sc, eta = coarse
+    dt, dev = median_radius.dtype, median_radius.device
+    r_val = float(rc.detach())
+    if not (math.isfinite(r_val) and COARSE_RADIUS_RANGE_M[0] <= r_val <= COARSE_RADIUS_RANGE_M[1]):
+        raise ValueError(f"coarse median radius must be in [{COARSE_RADIUS_RANGE_M[0]:g}, {COARSE_RADIUS_RANGE_M[1]:g}] m, "
+                         f"got {r_val:g}")
+    e_val = float(eta.detach())
+    if not (math.isfinite(e_val) and 0.0 <= e_val <= 1.0):
+        raise ValueError(f"fine-mode fraction must be in [0, 1], got {e_val:g}")
+    ref = torch.tensor([550.0], dtype=dt, device=dev)
+    crs = mode_mie_optics(wavelengths_nm, rc.to(dtype=dt, device=dev), sc, refractive_index)
+    c550_f = mode_mie_optics(ref, median_radius, geometric_sigma, refractive_index).extinction[0]
+    c550_c = mode_mie_optics(ref, rc.to(dtype=dt, device=dev), sc, refractive_index).extinction[0]
+    eta = eta.to(dtype=dt, device=dev).reshape(())
+    n_f, n_c = eta / c550_f, (1.0 - eta) / c550_c
+    n = n_f + n_c
+    ext = (n_f * fine.extinction + n_c * crs.extinction) / n
+    s_f, s_c = n_f * fine.scattering, n_c * crs.scattering
+    sca = (s_f + s_c) / n
+    s_tot = s_f + s_c
+    return LognormalOptics(
+        extinction=ext, scattering=sca, ssa=sca / ext,
+        asymmetry=(s_f * fine.asymmetry + s_c * crs.asymmetry) / s_tot,
+        phase=(s_f.unsqueeze(-1) * fine.phase + s_c.unsqueeze(-1) * crs.phase) / s_tot.unsqueeze(-1),
+        cosines=fine.cosines,
+    )
+
+
+def mode_mie_optics(wavelengths_nm: Tensor, median_radius: Tensor, geometric_sigma: Tensor,
+                    refractive_index) -> LognormalOptics:
     """Mie optics of a log-normal size distribution of spheres, differentiable in r_g and sigma_g.
 
     With s = ln sigma_g and t = ln x, x = 2 pi r / lambda, the area-weighted distribution is

@@ -13,8 +13,11 @@ import torch
 from torch import Tensor
 
 from . import constants as C
-from .mie import GEOMETRIC_SIGMA_RANGE, MEDIAN_RADIUS_RANGE_M, WAVELENGTH_RANGE_NM, check_refractive_index
+from .mie import (COARSE_RADIUS_RANGE_M, GEOMETRIC_SIGMA_RANGE, MEDIAN_RADIUS_RANGE_M, WAVELENGTH_RANGE_NM,
+                  check_refractive_index)
 
+COARSE_FIELDS = ("mie_coarse_radius", "mie_coarse_sigma", "mie_fine_fraction")
+"""Fields of the optional coarse mode of the ``lognormal_mie`` phase (all three or none)."""
 MIE_PHASES = ("cornette_shanks", "henyey_greenstein", "two_term_hg", "lognormal_mie")
 """Aerosol phase functions by name (:func:`skyfit.scattering.phase.mie_phase`; ``lognormal_mie``, per wavelength:
 :func:`skyfit.scattering.phase.lognormal_mie_phase`)."""
@@ -56,6 +59,10 @@ class Atmosphere:
             distribution's (the config and the fit set them so). [m]
         mie_geometric_sigma: geometric standard deviation sigma_g in (1, 4] of that distribution, shape (). [1]
         mie_refractive_index: (n, k) of the spheres' refractive index m = n + ik, k >= 0; with ``lognormal_mie``. [1]
+        mie_coarse_radius, mie_coarse_sigma: an optional second (coarse) log-normal mode of ``lognormal_mie``,
+            median radius [m] within COARSE_RADIUS_RANGE_M and sigma_g in (1, 4], shape () each; with
+        mie_fine_fraction: the fine mode's share eta in [0, 1] of the aerosol's extinction at 550 nm, shape ()
+            (all three or none; :func:`skyfit.atmosphere.mie.lognormal_mie_optics`). [1]
     """
 
     wavelengths: Tensor
@@ -81,6 +88,9 @@ class Atmosphere:
     mie_median_radius: Tensor | None = None
     mie_geometric_sigma: Tensor | None = None
     mie_refractive_index: tuple[float, float] | None = None
+    mie_coarse_radius: Tensor | None = None
+    mie_coarse_sigma: Tensor | None = None
+    mie_fine_fraction: Tensor | None = None
     config: dict | None = dataclasses.field(default=None, repr=False, compare=False)
     """The config this atmosphere was built from (None when built by hand); :func:`skyfit.fit` rebuilds it on
     the data's wavelengths, after checking that the atmosphere still equals it."""
@@ -169,6 +179,17 @@ class Atmosphere:
             x = float(v.detach())
             if not (math.isfinite(x) and (lo < x if open_lo else lo <= x) and x <= hi):
                 raise ValueError(f"{name} must be in {'(' if open_lo else '['}{lo:g}, {hi:g}], got {x:g}")
+        coarse = {n: getattr(self, n) for n in COARSE_FIELDS}
+        if any(v is not None for v in coarse.values()):
+            for name, (lo, hi), open_lo in (("mie_coarse_radius", COARSE_RADIUS_RANGE_M, False),
+                                            ("mie_coarse_sigma", GEOMETRIC_SIGMA_RANGE, True),
+                                            ("mie_fine_fraction", (0.0, 1.0), False)):
+                v = coarse[name]
+                if not isinstance(v, Tensor) or v.numel() != 1:
+                    raise ValueError(f"a coarse mode needs {', '.join(COARSE_FIELDS)} as scalar tensors; {name} is {v!r}")
+                x = float(v.detach())
+                if not (math.isfinite(x) and (lo < x if open_lo else lo <= x) and x <= hi):
+                    raise ValueError(f"{name} must be in {'(' if open_lo else '['}{lo:g}, {hi:g}], got {x:g}")
         if self.mie_refractive_index is None:
             raise ValueError("mie_phase lognormal_mie needs mie_refractive_index (n, k)")
         self.mie_refractive_index = check_refractive_index(self.mie_refractive_index)
@@ -178,6 +199,13 @@ class Atmosphere:
                              f"got wavelengths {float(lam.min()):g}-{float(lam.max()):g} nm")
 
     # -- conveniences -----------------------------------------------------
+    @property
+    def mie_coarse_mode(self) -> tuple[Tensor, Tensor, Tensor] | None:
+        """(mie_coarse_radius, mie_coarse_sigma, mie_fine_fraction) of a two-mode ``lognormal_mie``, else None."""
+        if self.mie_phase != "lognormal_mie" or self.mie_coarse_radius is None:
+            return None
+        return (self.mie_coarse_radius, self.mie_coarse_sigma, self.mie_fine_fraction)
+
     @property
     def scale_heights(self) -> Tensor:
         """(H_R, H_M) stacked, shape (2,). [m]"""

@@ -144,6 +144,8 @@ def _lut_json(tables: PrecomputedAtmosphere, atm: Atmosphere, fmt: str, rgb: boo
                      if atm.mie_phase == "two_term_hg" else {}),
                   **({"mie_median_radius_m": float(atm.mie_median_radius), "mie_geometric_sigma": float(atm.mie_geometric_sigma),
                       "mie_refractive_index": list(atm.mie_refractive_index),
+                      **({"mie_coarse_radius_m": float(atm.mie_coarse_radius), "mie_coarse_sigma": float(atm.mie_coarse_sigma),
+                          "mie_fine_fraction": float(atm.mie_fine_fraction)} if atm.mie_coarse_mode is not None else {}),
                       "mie_formula": "per wavelength: the Mie phase of a log-normal size distribution "
                                      "(skyfit.scattering.lognormal_mie_phase; docs/aerosol.md); mie_g is its asymmetry "
                                      "at 550 nm, and an RGB channel has no single phase"}

@@ -150,6 +150,14 @@ PARAMETERS: dict[str, ParameterSpec] = {
                                   "lognormal_mie: Mie extinction spectrum, single-scattering albedo and phase)"),
         ParameterSpec("mie_geometric_sigma", "1", "loginterval", 1.0, 1.05, 3.0, (1.4, 2.2), prior="loguniform",
                       description="geometric standard deviation sigma_g of that distribution (makes the phase lognormal_mie)"),
+        ParameterSpec("mie_coarse_radius", "m", "loginterval", 1.0, 0.1e-6, 10e-6, (0.4e-6, 1.2e-6), prior="loguniform",
+                      description="median radius of a second, coarse log-normal mode of the same spheres (makes the "
+                                  "phase lognormal_mie with two modes)"),
+        ParameterSpec("mie_coarse_sigma", "1", "loginterval", 1.0, 1.05, 3.0, (1.7, 2.2), prior="loguniform",
+                      description="geometric standard deviation of the coarse mode (makes the phase lognormal_mie with two modes)"),
+        ParameterSpec("mie_fine_fraction", "1", "interval", 1.0, 0.0, 1.0, (0.5, 0.95), prior="uniform",
+                      description="fine mode's share of the aerosol extinction at 550 nm (AERONET's fine-mode fraction; "
+                                  "makes the phase lognormal_mie with two modes)"),
         ParameterSpec("ground_albedo", "1", "interval", 1.0, 0.0, 1.0, (0.05, 0.35), prior="uniform",
                       description="grey Lambertian ground albedo (replaces the config's spectrum)"),
         ParameterSpec("ground_albedo_scale", "1", "interval", 1.0, 0.0, math.inf, (0.6, 1.4),
@@ -200,6 +208,16 @@ MIE_HG_WEIGHT_DEFAULT: float = 0.9
 """Start of mie_hg_weight when the config's phase is single-lobed [1]: mostly the forward lobe (close to the config's HG)."""
 LOGNORMAL_MIE: tuple[str, ...] = ("mie_median_radius", "mie_geometric_sigma")
 """Parameters of the lognormal_mie phase: free or set, they make the phase ``lognormal_mie`` (skyfit/atmosphere/mie.py)."""
+COARSE_MODE: tuple[str, ...] = ("mie_coarse_radius", "mie_coarse_sigma", "mie_fine_fraction")
+"""Parameters of the lognormal_mie phase's optional coarse mode: free or set, they add it (and make the phase
+lognormal_mie; skyfit.atmosphere.mie.lognormal_mie_optics)."""
+MIE_COARSE_RADIUS_DEFAULT: float = 0.7e-6
+"""Start of mie_coarse_radius [m]: the number median of AERONET's coarse modes (volume median radii 1.5-4 um with
+ln sigma_g 0.6-0.8; Dubovik et al. 2002, Table 1): 2.5 um x exp(-3 x 0.65^2)."""
+MIE_COARSE_SIGMA_DEFAULT: float = 1.9
+"""Start of mie_coarse_sigma [1]: exp(0.65), the same coarse mode."""
+MIE_FINE_FRACTION_DEFAULT: float = 0.8
+"""Start of mie_fine_fraction [1]: mostly fine aerosol, as continental haze at 500 nm (O'Neill et al. 2003)."""
 LOGNORMAL_DERIVED: tuple[str, ...] = ("mie_g", "mie_angstrom_alpha", "mie_ssa", "mie_g2", "mie_hg_weight")
 """Parameters the lognormal_mie phase derives from the size distribution and the refractive index: refused with it."""
 MIE_MEDIAN_RADIUS_DEFAULT: float = 0.1e-6
@@ -367,6 +385,11 @@ class Parameterisation:
                                   else MIE_MEDIAN_RADIUS_DEFAULT),
             "mie_geometric_sigma": (float(base.mie_geometric_sigma) if base.mie_geometric_sigma is not None
                                     else MIE_GEOMETRIC_SIGMA_DEFAULT),
+            "mie_coarse_radius": (float(base.mie_coarse_radius) if base.mie_coarse_radius is not None
+                                  else MIE_COARSE_RADIUS_DEFAULT),
+            "mie_coarse_sigma": float(base.mie_coarse_sigma) if base.mie_coarse_sigma is not None else MIE_COARSE_SIGMA_DEFAULT,
+            "mie_fine_fraction": (float(base.mie_fine_fraction) if base.mie_fine_fraction is not None
+                                  else MIE_FINE_FRACTION_DEFAULT),
             "ground_albedo": float(base.ground_albedo.mean()),
             "ground_albedo_scale": 1.0,
             "ozone_column": self._ozone_du if self._ozone_du is not None and self._ozone_du > 0 else 0.0,
@@ -387,7 +410,7 @@ class Parameterisation:
             if base.mie_phase == "lognormal_mie" and bool((base.mie_extinction > 0).all()):
                 # mie_beta_550 is the extinction at 550 nm itself (the spectrum is no power law)
                 with torch.no_grad():
-                    shape = self._lognormal_optics(base.mie_median_radius, base.mie_geometric_sigma)[0]
+                    shape = self._lognormal_optics(base.mie_median_radius, base.mie_geometric_sigma, base.mie_coarse_mode)[0]
                 b550 = float((base.mie_extinction / shape).mean())
                 self.defaults["mie_beta_550"] = b550
                 self.defaults["mie_aod_550"] = b550 * float(base.mie_column_height)
@@ -524,13 +547,15 @@ class Parameterisation:
         if "mie_mixing_height" in touched:  # the profile becomes a boundary layer
             kw["mie_profile"] = "boundary_layer"
             kw["mie_mixing_height"] = T(phys["mie_mixing_height"]).reshape(())
-        if self.lognormal_mie(touched) and touched & {*LOGNORMAL_MIE, "mie_beta_550", "mie_aod_550"}:
+        if self.lognormal_mie(touched) and touched & {*LOGNORMAL_MIE, *COARSE_MODE, "mie_beta_550", "mie_aod_550"}:
             # the size distribution's spectrum: beta_550 C_ext(lambda) / C_ext(550), albedo C_sca / C_ext, its phase
             rg, sg = T(phys["mie_median_radius"]).reshape(()), T(phys["mie_geometric_sigma"]).reshape(())
-            shape, ssa, g550 = self._lognormal_optics(rg, sg)
+            coarse = (tuple(T(phys[n]).reshape(()) for n in COARSE_MODE) if self.coarse_mode(touched) else None)
+            shape, ssa, g550 = self._lognormal_optics(rg, sg, coarse)
             ext = self._beta_550(phys, touched) * shape
             kw.update(mie_extinction=ext, mie_scattering=ext * ssa, mie_g=g550, mie_phase="lognormal_mie",
-                      mie_median_radius=rg, mie_geometric_sigma=sg, mie_refractive_index=self._refractive_index)
+                      mie_median_radius=rg, mie_geometric_sigma=sg, mie_refractive_index=self._refractive_index,
+                      **dict(zip(COARSE_MODE, coarse or (None, None, None))))
         elif touched & {"mie_beta_550", "mie_aod_550", "mie_angstrom_alpha", "mie_ssa"}:
             ext = b.mie_extinction
             if touched & {"mie_beta_550", "mie_aod_550", "mie_angstrom_alpha"}:
@@ -559,13 +584,19 @@ class Parameterisation:
         """True when the aerosol phase is lognormal_mie (the config's, or mie_median_radius / mie_geometric_sigma
         free or set)."""
         touched = set(self.free) | self._overridden if touched is None else touched
-        return self.base.mie_phase == "lognormal_mie" or bool(touched & set(LOGNORMAL_MIE))
+        return self.base.mie_phase == "lognormal_mie" or bool(touched & {*LOGNORMAL_MIE, *COARSE_MODE})
 
-    def _lognormal_optics(self, median_radius: Tensor, geometric_sigma: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def coarse_mode(self, touched: set[str] | None = None) -> bool:
+        """True when the lognormal_mie aerosol has a coarse mode (the config's, or a COARSE_MODE parameter free or set)."""
+        touched = set(self.free) | self._overridden if touched is None else touched
+        return self.base.mie_coarse_mode is not None or bool(touched & set(COARSE_MODE))
+
+    def _lognormal_optics(self, median_radius: Tensor, geometric_sigma: Tensor,
+                          coarse: tuple[Tensor, Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """(C_ext(lambda) / C_ext(550 nm), single-scattering albedo (W,), asymmetry at 550 nm ()) of the size
-        distribution on the model wavelengths (:func:`skyfit.atmosphere.mie.lognormal_mie_optics`)."""
+        distribution (with its coarse mode) on the model wavelengths (:func:`skyfit.atmosphere.mie.lognormal_mie_optics`)."""
         lam = torch.cat([self._lam, self._lam.new_tensor([550.0])])
-        o = lognormal_mie_optics(lam, median_radius, geometric_sigma, self._refractive_index)
+        o = lognormal_mie_optics(lam, median_radius, geometric_sigma, self._refractive_index, coarse)
         return o.extinction[:-1] / o.extinction[-1], o.ssa[:-1], o.asymmetry[-1]
 
     def boundary_layer(self, touched: set[str] | None = None) -> bool:
@@ -606,11 +637,15 @@ class Parameterisation:
         with torch.no_grad():
             rg, sg = phys["mie_median_radius"].reshape(()), phys["mie_geometric_sigma"].reshape(())
             lam = torch.tensor([440.0, 550.0, 870.0], dtype=torch.float64)
-            o = lognormal_mie_optics(lam, rg.double().cpu(), sg.double().cpu(), self._refractive_index)
+            coarse = (tuple(phys[n].reshape(()).double().cpu() for n in COARSE_MODE) if self.coarse_mode() else None)
+            o = lognormal_mie_optics(lam, rg.double().cpu(), sg.double().cpu(), self._refractive_index, coarse)
             alpha = -math.log(float(o.extinction[0] / o.extinction[2])) / math.log(440.0 / 870.0)
-            return {"mie_angstrom_alpha": alpha, "mie_g": float(o.asymmetry[1]), "mie_ssa": float(o.ssa[1]),
-                    "mie_effective_radius": effective_radius(float(rg), float(sg)),
-                    "mie_effective_variance": effective_variance(float(sg))}
+            out = {"mie_angstrom_alpha": alpha, "mie_g": float(o.asymmetry[1]), "mie_ssa": float(o.ssa[1]),
+                   "mie_effective_radius": effective_radius(float(rg), float(sg)),
+                   "mie_effective_variance": effective_variance(float(sg))}
+            if coarse is not None:  # the effective radius and variance above are the fine mode's
+                out["mie_coarse_effective_radius"] = effective_radius(float(coarse[0]), float(coarse[1]))
+            return out
 
     def nuisance(self, phys: Mapping[str, Tensor], i: int) -> dict[str, Tensor]:
         """Observation ``i``'s nuisance values (shape ()) from :meth:`to_physical`'s dict."""

@@ -16,6 +16,8 @@ rung               what changes                                           parame
 ``lognormal_mie``  phase, spectrum and albedo of a log-normal Mie aerosol  mie_median_radius, mie_geometric_sigma
                    instead of g and the Angstrom exponent                 (fixes mie_g, mie_angstrom_alpha, mie_g2,
                                                                           mie_hg_weight: derived)
+``coarse_mode``    + a coarse log-normal mode of the same spheres         mie_coarse_radius, mie_fine_fraction
+                   (AERONET's two modes; its sigma_g stays 1.9)
 ``boundary_layer`` + aerosol density 1 up to h_mix, exponential above     mie_mixing_height
 ``height_fog``     flat-Earth height-fog optical depth (Ishiyama 2018)    -- (only where the scene qualifies)
 =================  =====================================================  ===========================================
@@ -32,7 +34,7 @@ stand-in for a later one is dropped again). Every rung is nested in the rungs bu
 switched off; the two-term phase is the single lobe at f -> 1 and the boundary layer the exponential
 at h_mix -> 0, limits of their open ranges). ``lognormal_mie`` is the one rung that is not nested: it
 replaces g and alpha (and a two-term lobe) by the two parameters of the size distribution, from which
-Mie theory derives them (Rung ``drops``), so it is compared with the best model so far at equal or
+Mie theory derives them (Rung ``drops``); ``coarse_mode`` is nested in it (fine fraction 1), so it is compared with the best model so far at equal or
 smaller k, by the same BIC margin. The chosen model is the last accepted one: the lowest BIC, unless a bigger
 model is lower by less than 2.
 
@@ -84,7 +86,7 @@ from .data import Observation
 from .losses import Loss
 from .model import FitProblem, SkyModel
 from .optimise import FitOptions, OptimiseResult, fit
-from .parameters import LOGNORMAL_DERIVED, LOGNORMAL_MIE, NUISANCE, ORIENTATION, PARAMETERS, FitError, Parameterisation
+from .parameters import COARSE_MODE, LOGNORMAL_DERIVED, LOGNORMAL_MIE, NUISANCE, ORIENTATION, PARAMETERS, FitError, Parameterisation
 from .problem import atmosphere_config, fit_settings, initial_values, prepare
 from .results import check_result_path, write_result
 
@@ -133,6 +135,9 @@ RUNGS: tuple[Rung, ...] = (
          ("mie_g2", "mie_hg_weight")),
     Rung("lognormal_mie", "aerosol phase, Angstrom exponent and albedo from a log-normal size distribution (Mie theory) "
          "instead of fitted g and alpha", ("mie_median_radius", "mie_geometric_sigma"),
+         drops=("mie_g", "mie_angstrom_alpha", "mie_g2", "mie_hg_weight")),
+    Rung("coarse_mode", "+ a coarse log-normal mode of the same spheres (AERONET's fine and coarse modes): its median "
+         "radius and the fine mode's share of the 550 nm extinction", ("mie_coarse_radius", "mie_fine_fraction"),
          drops=("mie_g", "mie_angstrom_alpha", "mie_g2", "mie_hg_weight")),
     Rung("boundary_layer", "+ a well-mixed aerosol layer: density 1 up to a mixing height, exponential above",
          ("mie_mixing_height",)),
@@ -320,7 +325,7 @@ class Ladder:
             kw["mie_scattering"] = torch.zeros_like(atm.mie_scattering)
         if not st.ozone:
             kw["ozone_absorption"] = None
-        if atm.mie_phase == "lognormal_mie" and not set(st.free) & set(LOGNORMAL_MIE):
+        if atm.mie_phase == "lognormal_mie" and not set(st.free) & {*LOGNORMAL_MIE, *COARSE_MODE}:
             # below the lognormal_mie rung g and alpha are fitted: Henyey-Greenstein with the distribution's g (550 nm)
             kw["mie_phase"] = "henyey_greenstein"
         return atm.replace(**kw) if kw else atm
@@ -336,7 +341,7 @@ class Ladder:
     def _param(self, st: _State, values: Mapping) -> Parameterisation:
         base = self.base_for(st)
         init = {n: v for n, v in self.initial.items() if st.mie or not n.startswith("mie_")}
-        if set(st.free) & set(LOGNORMAL_MIE):  # the size distribution derives these
+        if set(st.free) & {*LOGNORMAL_MIE, *COARSE_MODE}:  # the size distribution derives these
             init = {n: v for n, v in init.items() if n not in LOGNORMAL_DERIVED}
         if st.mie and "mie_aod_550" in st.free and "mie_aod_550" not in init and "mie_beta_550" not in init:
             if not float(base.mie_extinction.max()) > 0:  # a config without aerosol: start from AOD 0.1

@@ -89,7 +89,7 @@ def tabulated_phase(nu: Tensor, cosines: Tensor, table: Tensor) -> Tensor:
 
 
 def lognormal_mie_phase(nu: Tensor, wavelengths: Tensor, median_radius: Tensor, geometric_sigma: Tensor,
-                        refractive_index) -> Tensor:
+                        refractive_index, coarse: tuple[Tensor, Tensor, Tensor] | None = None) -> Tensor:
     """Mie phase of a log-normal size distribution of spheres, per wavelength, shape (..., W). [1/sr]
 
     The distribution average of the spheres' S11 / (pi x^2 Q_sca) weighted by their scattering
@@ -103,8 +103,10 @@ def lognormal_mie_phase(nu: Tensor, wavelengths: Tensor, median_radius: Tensor, 
         median_radius: r_g, shape (). [m]
         geometric_sigma: sigma_g in (1, 4], shape (). [1]
         refractive_index: (n, k) of m = n + ik. [1]
+        coarse: optional coarse mode (r_c [m], sigma_c [1], fine-mode fraction eta of the 550 nm extinction [1]),
+            mixed in by its scattering cross-section (:func:`skyfit.atmosphere.mie.lognormal_mie_optics`).
     """
-    optics = lognormal_mie_optics(wavelengths, median_radius, geometric_sigma, refractive_index)
+    optics = lognormal_mie_optics(wavelengths, median_radius, geometric_sigma, refractive_index, coarse)
     return tabulated_phase(nu, optics.cosines, optics.phase)
 
 
@@ -139,5 +141,5 @@ def spectral_mie_phase(nu: Tensor, atm) -> Tensor:
     phases of one shape at every wavelength (:func:`atmosphere_mie_phase`). [1/sr]"""
     if atm.mie_phase == "lognormal_mie":
         return lognormal_mie_phase(nu, atm.wavelengths, atm.mie_median_radius, atm.mie_geometric_sigma,
-                                   atm.mie_refractive_index)
+                                   atm.mie_refractive_index, atm.mie_coarse_mode)
     return atmosphere_mie_phase(nu, atm).unsqueeze(-1)
