@@ -15,6 +15,7 @@ camera tilt). Variants:
 - ``mie``: the log-normal Mie phase (r_g, sigma_g in place of g and alpha; m = 1.45 + 0.005i);
 - ``mie2``: + a coarse mode (its median radius and the fine-mode fraction of the 550 nm extinction free, its
   sigma_g 1.9); ``mie2_bl``: that + the boundary layer;
+- any of them + ``_o``: + the orientation nuisances of docs/kider.md (a) (sun zenith offset, two tilts);
 - any of them + ``_b``: multiple scattering from Bruneton's 4 orders (``multiple: bruneton_lagged``) instead of
   the config's Hillaire LUT.
 
@@ -66,20 +67,29 @@ BRUNETON = {"multiple": "bruneton_lagged", "orders": 4, "table_sizes": [64, 32, 
 refreshed; the photo fits' tables) instead of the config's Hillaire LUT (32 directions x 12 steps)."""
 
 
-def _parse(v: str) -> tuple[str, bool]:
-    base, b = (v[:-2], True) if v.endswith("_b") else (v, False)
+ORIENTATION = ["sun_zenith_offset", "camera_tilt_north", "camera_tilt_east"]
+"""Suffix ``_o`` of a variant: the orientation nuisances of docs/kider.md (a) besides the heading (sun zenith
+offset, two tilts of the scanner's axis), to show what each rung gains with and without them."""
+
+
+def _parse(v: str) -> tuple[str, bool, bool]:
+    base, b, o = v, False, False
+    while base.endswith(("_b", "_o")) and base not in VARIANTS:
+        b, o = b or base.endswith("_b"), o or base.endswith("_o")
+        base = base[:-2]
     if base not in VARIANTS:
-        raise SystemExit(f"unknown variant {v!r}: one of {', '.join(VARIANTS)}, each optionally with _b (Bruneton)")
-    return base, b
+        raise SystemExit(f"unknown variant {v!r}: one of {', '.join(VARIANTS)}, each optionally with _b (Bruneton) "
+                         "and/or _o (+ the orientation nuisances)")
+    return base, b, o
 
 
 def variant_config(v: str) -> dict:
     from skyfit.atmosphere import load_yaml
 
-    base, bruneton = _parse(v)
+    base, bruneton, orientation = _parse(v)
     cfg = copy.deepcopy(load_yaml(str(CONFIG)))
     add, drop = VARIANTS[base]
-    cfg["fit"]["free"] = [n for n in ATMOSPHERE if n not in drop] + add + NUISANCE
+    cfg["fit"]["free"] = [n for n in ATMOSPHERE if n not in drop] + add + NUISANCE + (ORIENTATION if orientation else [])
     if bruneton:
         cfg["fit"].update(BRUNETON)
     return cfg

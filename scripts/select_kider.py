@@ -11,6 +11,7 @@ CPU time per capture is process time (the machine is shared: wall time is not a 
     .venv/bin/python scripts/select_kider.py                       # all captures
     .venv/bin/python scripts/select_kider.py --captures 09.30,12.00 --max-iter 40
     .venv/bin/python scripts/select_kider.py --table-only          # rebuild table.md from the JSON files
+    .venv/bin/python scripts/select_kider.py --nuisance exposure,sun_azimuth_offset --out docs/selection/kider_instrument
     .venv/bin/python scripts/select_kider.py --extra-model --captures 10.00,12.00,09.30   # (below)
 
 ``--extra-model``: instead of the ladder, fit the model the greedy ladder cannot reach once it
@@ -232,6 +233,8 @@ def main() -> int:
     ap.add_argument("--max-iter", type=int, help="L-BFGS iterations per rung (default: the config's)")
     ap.add_argument("--sigma", choices=("scaled", "known"), default="scaled")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--nuisance", help="comma list: the instrument's free parameters in every rung (default: those of "
+                                       "the config's free list), e.g. exposure,sun_azimuth_offset (issue 14)")
     ap.add_argument("--table-only", action="store_true", help="only rebuild table.md from the JSON files in --out")
     ap.add_argument("--extra-model", action="store_true",
                     help="instead of the ladder: fit multiple scattering + free scale heights (extra_HH.MM.json)")
@@ -247,6 +250,8 @@ def main() -> int:
     folders = sorted(day.glob("2013-05-27___*")) if args.captures == "all" else [
         day / f"2013-05-27___{c}.00" for c in args.captures.split(",")]
     cfg = load_yaml(args.config)
+    if args.nuisance:  # the ladder keeps only the instrument's parameters of the free list
+        cfg["fit"]["free"] = [n.strip() for n in args.nuisance.split(",") if n.strip()]
     overrides = {"max_iter": args.max_iter, "select_sigma": args.sigma}
     if args.extra_model and not args.table_only:
         for folder in folders:

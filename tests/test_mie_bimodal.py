@@ -184,3 +184,19 @@ def test_float32_agrees_with_float64():
         torch.testing.assert_close(getattr(o32, name).double(), getattr(o64, name), rtol=1e-4, atol=0)
     torch.testing.assert_close((o32.extinction / o32.extinction[1]).double(), o64.extinction / o64.extinction[1],
                                rtol=1e-4, atol=0)
+
+
+def test_select_takes_the_coarse_mode_only_when_in_the_data():
+    """The ladder rayleigh -> mie -> ozone -> lognormal_mie -> coarse_mode: a two-mode sky (eta 0.6) takes the coarse mode
+    (strong BIC evidence) and recovers eta within 0.1; a one-mode log-normal sky stops at lognormal_mie."""
+    from test_select import _rung, _subset, ladder
+
+    rungs = _subset("rayleigh", "mie", "ozone", "lognormal_mie", "coarse_mode")  # the skies have the config's ozone
+    # the config's fine mode (0.07 um, 1.5) is not the truth's (0.09 um, 1.6), so the fine mode must be fitted too
+    rep = ladder(_lcfg(r_um=0.07, sigma=1.5), synthetic(_bcfg(), 50.0, seed=31, n=160), rungs).run()
+    assert rep["chosen"] == "coarse_mode", rep["why"]
+    row = _rung(rep, "coarse_mode")
+    assert row["delta_bic_parent"] < -10
+    assert row["parameters"]["mie_fine_fraction"] == pytest.approx(0.6, abs=0.1)
+    rep2 = ladder(_lcfg(r_um=0.07, sigma=1.5), synthetic(_lcfg(r_um=0.09, sigma=1.6), 50.0, seed=32, n=160), rungs).run()
+    assert rep2["chosen"] == "lognormal_mie", rep2["why"]

@@ -12,18 +12,26 @@ exposures ``t_j``:
 - :func:`robertson_response`: Robertson, Borman & Stevenson 2003, "Estimation-theoretic approach to
   dynamic range enhancement using multiple exposures", J. Electronic Imaging 12(2) 219-228, §3:
   alternate the weighted least-squares radiance ``x_i = sum_j w_ij t_j I(y_ij) / sum_j w_ij t_j^2``
-  and the response update ``I_m = mean of t_j x_i over the samples (i, j) with y_ij = m``.
+  and the response update ``I_m = mean of t_j x_i over the samples (i, j) with y_ij = m``, normalising
+  ``I`` after each step. That iteration is a power iteration of a non-negative matrix; its limit (the
+  Perron vector) is computed directly, as the plain iteration needs thousands of steps.
 
 Both return a :class:`TabulatedResponse` on a grid of code levels (every code of an 8-bit frame; 256
 levels for deeper frames, each sample then split between its two neighbouring levels by linear
 interpolation), made monotone (cumulative maximum of ``X``: a camera's response does not decrease)
-and scaled so that code 1 maps to 1. The exposures are *relative*: their common scale is the
-radiance's; without them the exponent of a response cannot be known (Grossberg & Nayar 2003, "the
-exponential ambiguity"): the calibrations refuse equal exposures.
+and scaled so that code 1 maps to 1.
+
+What the frames cannot tell (Grossberg & Nayar 2003, "What can be known about the radiometric response
+from images?", ECCV): the exposures are *relative*, their common scale is the radiance's; without them
+the exponent of a response is unknown (the exponential ambiguity), so the calibrations refuse equal
+exposures; and when every exposure ratio is the same ``r`` (a camera's +-n EV bracket) a response is
+known only up to a ripple periodic in ``ln X`` with period ``ln r``, since the data only ever compare
+``X`` with ``r^k X`` (:func:`constant_exposure_ratio`). Debevec's smoothness term picks the smoothest
+curve; Robertson's method has no such term and ripples by ~30 % on such a bracket (tests).
 
 Why by hand: OpenCV's ``createCalibrateDebevec`` / ``createCalibrateRobertson`` do the same, but
-OpenCV is a ~60 MB dependency for one small least-squares problem and one fixed-point iteration;
-numpy does both in well under a second on a sample of pixels, and the code says what it solves.
+OpenCV is a ~60 MB dependency for one small least-squares problem and one eigenvector; numpy and
+scipy.sparse do both in well under a second on a sample of pixels, and the code says what it solves.
 """
 from __future__ import annotations
 
@@ -34,30 +42,34 @@ import numpy as np
 
 CALIBRATION_LEVELS: int = 256
 """Code levels of a calibrated response [1]: every code of an 8-bit frame; deeper frames are interpolated onto it."""
-DEBEVEC_SMOOTHNESS: float = 1e-6
+DEBEVEC_SMOOTHNESS: float = 1e-7
 """Weight lambda of the smoothness term of Debevec & Malik 1997 eq. 3 [1], in this module's normalisation:
 objective = mean over samples of (w r)^2 + lambda * integral over c of (w(c) g''(c))^2 dc, with g = ln X, c in
-[0, 1] and the hat w in [0, 1] (max 1 at c = 0.5). On the tests' 6-frame 8-bit bracket with 1 % noise,
-1e-7 .. 1e-5 recover a filmic S-curve within 1.5 % (1e-4: 4 %, the smoothing then bends the toe); 1e-6 is the
-middle of that plateau."""
+[0, 1] and the hat w in [0, 1] (max 1 at c = 0.5). Measured on tests/test_photo_response.py's filmic S-curve
+(Naka-Rushton, exponents 1.15-1.4; 8 bits, 1 % noise), largest error over codes 0.05-0.95 after a per-channel
+scale, 6 frames 4x apart / 7 frames at irregular ratios: 2.7 / 0.3 % at 1e-8, 1.0 / 0.3 % at 3e-8, 1.2 / 1.3 %
+at 1e-7, 2.4 / 2.3 % at 1e-6, 14 % at 1e-5, 58 % at 1e-4. Too little smoothing leaves the ripple a constant
+exposure ratio cannot see (:func:`constant_exposure_ratio`), too much bends the toe; 1e-7 keeps a factor 10
+from the first."""
 DEBEVEC_PIXELS: int = 3000
 """Pixels per channel in the Debevec system [1], chosen spread over brightness (module docstring). With
 ``ln E_i`` eliminated in closed form the solve is a 256-column least-squares problem whatever this is."""
 ROBERTSON_PIXELS: int = 20000
 """Pixels per channel used by the Robertson iteration [1] (a random subset when there are more)."""
 ROBERTSON_ITERATIONS: int = 3
-"""Iterations of Robertson et al. 2003's update applied to the fixed point computed directly (:func:`robertson_response`) [1]."""
+"""Steps of Robertson et al. 2003's update applied to the fixed point computed directly [1]; their last relative
+change (``info["last_change"]``, ~1e-14) shows the result is the iteration's limit."""
 MIN_CALIBRATION_PIXELS: int = 50
 """Fewest pixels per channel well exposed in two frames of different exposure for a calibration [1]:
-Debevec & Malik 1997 §2.1 ask for N (P - 1) > (Zmax - Zmin), 50 pixels for 5 frames of 8 bits."""
+Debevec & Malik 1997 §2.1 ask for N (P - 1) > (Zmax - Zmin) and find N ~ 50 ample for their 11 frames."""
 MIN_CODE_SPAN: float = 0.5
 """Least span of the encoded values those pixels cover [1]: a curve measured over less is extrapolated over
 more than half the codes, which a calibration should not pretend to know."""
 MIN_EXPOSURE_RATIO: float = 1.01
 """Exposures closer than this ratio count as equal [1]: equal exposures say nothing about the response."""
 SLOPE_FLOOR: float = 1e-3
-"""Least slope dX/dc of a tabulated response [1], as a fraction of its mean slope (X(1) - X(0)) / 1: the noise
-model of :mod:`skyfit.io.photo` divides by nothing, but a zero slope would give a flat part zero quantisation noise."""
+"""Least slope dX/dc of a tabulated response [1], as a fraction of its mean slope X(1) - X(0): in the noise model of
+:mod:`skyfit.io.photo` a flat part of the curve would otherwise have no quantisation noise, hence too much weight."""
 CURVE_SAMPLES: int = 17
 """Points per channel of :meth:`TabulatedResponse.curve` (the compact form written to RESULT.json)."""
 
@@ -96,6 +108,7 @@ class TabulatedResponse:
     values: np.ndarray
     method: str = "table"
     info: dict = dataclasses.field(default_factory=dict)
+    _slopes: np.ndarray = dataclasses.field(init=False, repr=False)
 
     def __post_init__(self):
         codes = np.asarray(self.codes, np.float64)
@@ -302,6 +315,37 @@ def _spread_sample(c: np.ndarray, w: np.ndarray, useful: np.ndarray, n_max: int,
     return sel
 
 
+CONSTANT_RATIO_TOL: float = 0.1
+"""Adjacent log exposure ratios within this fraction of their mean count as one constant ratio [1]."""
+
+
+def constant_exposure_ratio(exposures) -> float | None:
+    """The common ratio of consecutive distinct exposures when they step by one factor (a +-n EV bracket), else None.
+
+    With one ratio ``r`` between all frames, a response is known from the frames only up to a ripple periodic in
+    ``ln X`` with period ``ln r`` (the data compare ``X`` with ``r^k X`` only): Grossberg & Nayar 2003, "What can be
+    known about the radiometric response from images?", the fractal ambiguity. Debevec's smoothness term picks
+    the smoothest such curve; Robertson's method has none, so on such a bracket its curve ripples (10-30 % on the
+    tests' 4x bracket).
+
+    Args:
+        exposures: relative exposures, shape (P,). [relative]
+
+    Returns:
+        The ratio (> 1), or None when the steps differ by more than :data:`CONSTANT_RATIO_TOL`.
+    """
+    t = np.unique(np.asarray(exposures, np.float64))
+    steps = []
+    for a, b in zip(t[:-1], t[1:]):
+        if b >= MIN_EXPOSURE_RATIO * a:
+            steps.append(math.log(b / a))
+    if not steps:
+        return None
+    steps = np.array(steps)
+    mean = float(steps.mean())
+    return math.exp(mean) if float(np.abs(steps - mean).max()) <= CONSTANT_RATIO_TOL * mean else None
+
+
 # --------------------------------------------------------------------------
 # Debevec & Malik 1997
 # --------------------------------------------------------------------------
@@ -386,14 +430,14 @@ def debevec_response(codes, exposures, *, max_code: float = 255, usable=None, le
     c, w, t = _calibration_data(codes, exposures, max_code, usable)
     if not smoothness >= 0 or levels < 3:
         raise ResponseError(f"smoothness must be >= 0 and levels >= 3, got {smoothness}, {levels}")
-    rng = np.random.default_rng(seed)
     names = CHANNEL_NAMES if c.shape[-1] == 3 else ("X",)
     gs, info = [], {"method": "Debevec & Malik 1997", "smoothness": smoothness, "levels": levels, "frames": int(c.shape[0]),
-                    "pixels": {}, "rms_log_residual": {}}
+                    "constant_ratio": constant_exposure_ratio(t), "pixels": {}, "rms_log_residual": {}}
     for k, name in enumerate(names):
         ck, wk = c[..., k], w[..., k]
         useful = _useful(wk, t, name, ck)
-        sel = _spread_sample(ck, wk, useful, pixels, rng)
+        sel = _spread_sample(ck, wk, useful, pixels, np.random.default_rng(seed))  # one seed per channel: a channel's
+        # curve does not depend on the others
         g, rms = _debevec_channel(ck[:, sel], wk[:, sel], t, levels, smoothness)
         gs.append(g)
         info["pixels"][name] = int(sel.size)
@@ -518,16 +562,15 @@ def robertson_response(codes, exposures, *, max_code: float = 255, usable=None, 
     c, w, t = _calibration_data(codes, exposures, max_code, usable)
     if levels < 3 or iterations < 0:
         raise ResponseError(f"levels must be >= 3 and iterations >= 0, got {levels}, {iterations}")
-    rng = np.random.default_rng(seed)
     names = CHANNEL_NAMES if c.shape[-1] == 3 else ("X",)
     curves = []
     info = {"method": "Robertson, Borman & Stevenson 2003", "levels": levels, "frames": int(c.shape[0]),
-            "iterations": iterations, "pixels": {}, "last_change": {}}
+            "iterations": iterations, "constant_ratio": constant_exposure_ratio(t), "pixels": {}, "last_change": {}}
     for k, name in enumerate(names):
         ck, wk = c[..., k], w[..., k]
         idx = np.flatnonzero(_useful(wk, t, name, ck))
         if idx.size > pixels:
-            idx = np.sort(rng.choice(idx, pixels, replace=False))
+            idx = np.sort(np.random.default_rng(seed).choice(idx, pixels, replace=False))
         i_curve, delta = _robertson_channel(ck[:, idx], wk[:, idx], t, levels, iterations)
         curves.append(i_curve)
         info["pixels"][name] = int(idx.size)
@@ -542,6 +585,7 @@ __all__ = [
     "ResponseError",
     "TabulatedResponse",
     "check_table",
+    "constant_exposure_ratio",
     "debevec_response",
     "hat_weight",
     "robertson_response",

@@ -72,7 +72,16 @@ import numpy as np
 import torch
 
 from ..camera.photo_io import DEFAULT_BLACK_LEVEL, DEFAULT_CLIP_LEVEL, png_bit_depth
+from ..camera.response import (
+    ResponseError,
+    TabulatedResponse,
+    constant_exposure_ratio,
+    debevec_response,
+    robertson_response,
+    table_response,
+)
 from ..camera.srgb import srgb_decode, srgb_encode_slope
+from .atomic import write_text_atomic
 from .exr import ExrError, read_exr
 from .hdr import HdrError, read_hdr
 from .kider import is_kider_capture_name
@@ -148,8 +157,10 @@ class LinearPhoto:
         darkest_saturated: any channel clipped in that darkest frame, shape (H, W), bool.
         source: the path read.
         meta: JSON-ready facts: ``format`` ("jpeg", "png", "tiff", "raw", "hdr", "exr", "bracket"),
-            ``bit_depth``, ``response`` ("srgb", "linear", "gamma:G"), ``response_source`` ("default",
-            "--linear", "given", "estimated"), ``frames`` (list of ``path``, ``exposure_s``,
+            ``bit_depth``, ``response`` ("srgb", "linear", "gamma:G", "debevec", "robertson", "table:PATH"),
+            ``response_source`` ("default", "--linear", "given", "estimated", "calibrated"), ``response_curve``
+            (a tabulated response at 17 codes per channel, :meth:`TabulatedResponse.curve`), ``response_calibration``
+            (Debevec/Robertson: pixels, residuals, constant exposure ratio), ``frames`` (list of ``path``, ``exposure_s``,
             ``f_number``, ``iso``, ``relative_exposure``, ``exposure_source``: "exif", "given",
             "estimated" or "unknown"), ``notes`` (warnings), ``noise`` (the model's constants),
             the first frame's EXIF (``exposure_s``, ``f_number``, ``iso``, ``datetime_original``,
@@ -166,27 +177,45 @@ class LinearPhoto:
     darkest_saturated: np.ndarray
     source: str
     meta: dict
+    response_table: TabulatedResponse | None = None
+    """The calibrated or given response table (for :func:`write_response_table`); None for a parametric response."""
 
 
 # --------------------------------------------------------------------------
 # Responses: inverse camera response, codes in [0, 1] -> linear X in [0, 1]
 # --------------------------------------------------------------------------
 
+CALIBRATIONS: tuple[str, ...] = ("debevec", "robertson")
+"""Responses calibrated from a bracket's frames (:mod:`skyfit.camera.response`)."""
+_RGB = np.arange(3)
+
+
 @dataclasses.dataclass(frozen=True)
 class _Response:
-    name: str  # "linear", "srgb", "gamma:G"
+    name: str  # "linear", "srgb", "gamma:G", "debevec", "robertson", "table:PATH"
     gamma: float | None = None
+    table: TabulatedResponse | None = dataclasses.field(default=None, compare=False, repr=False)
 
-    def decode(self, c: np.ndarray) -> np.ndarray:
-        """Linear values from encoded values c in [0, 1], same shape."""
+    @property
+    def per_channel(self) -> bool:
+        """Whether the channels have different curves (a three-channel table)."""
+        return self.table is not None and self.table.channels == 3
+
+    def decode(self, c: np.ndarray, channel: np.ndarray | None = None) -> np.ndarray:
+        """Linear values from encoded values c in [0, 1], same shape; a per-channel response reads ``channel``
+        (0, 1, 2 per value) or, when None, c's last axis as R, G, B (c broadcast to (..., 3))."""
+        if self.table is not None:
+            return self.table.decode(c, channel)
         if self.name == "linear":
             return np.asarray(c, np.float64)
         if self.name == "srgb":
             return srgb_decode(torch.from_numpy(np.asarray(c, np.float64))).numpy()
         return np.asarray(c, np.float64) ** self.gamma
 
-    def slope(self, c: np.ndarray) -> np.ndarray:
-        """dX/dc at encoded values c, same shape."""
+    def slope(self, c: np.ndarray, channel: np.ndarray | None = None) -> np.ndarray:
+        """dX/dc at encoded values c, shape as :meth:`decode`."""
+        if self.table is not None:
+            return self.table.slope(c, channel)
         c = np.asarray(c, np.float64)
         if self.name == "linear":
             return np.ones_like(c)
@@ -200,13 +229,55 @@ def _gamma_name(g: float) -> str:
     return f"gamma:{round(g, 2):g}"
 
 
+def _read_response_table(path: str, table_path: str) -> _Response:
+    """A CSV inverse response (rows ``code, X`` or ``code, R, G, B``; codes in [0, 1]) -> _Response; PhotoError (one line
+    naming the photo and the table) for a missing, unreadable or malformed table (:func:`skyfit.camera.response.check_table`)."""
+    where = f"photo {path}: response table {table_path}"
+    if not os.path.isfile(table_path):
+        raise PhotoError(f"{where}: no such file")
+    try:
+        text = Path(table_path).read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise PhotoError(f"{where}: cannot read it ({_one_line(e)})") from None
+    rows, lines = [], []
+    for n, line in enumerate(text.splitlines(), 1):
+        cells = line.split("#")[0].strip()
+        if not cells:
+            continue
+        try:
+            vals = [float(v) for v in cells.split(",")]
+        except ValueError:
+            if not rows:
+                continue  # a header line before the numbers
+            raise PhotoError(f"{where}: line {n} is not comma-separated numbers: {cells[:40]!r}") from None
+        if rows and len(vals) != len(rows[0]):
+            raise PhotoError(f"{where}: line {n} has {len(vals)} column(s), the first row {len(rows[0])}")
+        rows.append(vals)
+        lines.append(n)
+    if not rows:
+        raise PhotoError(f"{where}: no rows of numbers (expected code, X or code, R, G, B)")
+    if len(rows[0]) not in (2, 4):
+        raise PhotoError(f"{where}: {len(rows[0])} column(s); a table has 2 (code, X) or 4 (code, R, G, B)")
+    arr = np.array(rows)
+    try:
+        tab = table_response(arr[:, 0], arr[:, 1:], info={"path": table_path, "rows": len(rows)})
+    except ResponseError as e:
+        raise PhotoError(f"{where}: {e}") from None
+    return _Response(f"table:{table_path}", table=tab)
+
+
 def _parse_response(path: str, spec: str) -> _Response | str:
-    """A response spec -> _Response, or the string "estimate"; PhotoError for anything else."""
-    s = spec.strip().lower()
+    """A response spec -> _Response, or the string "estimate", "debevec" or "robertson"; PhotoError for anything else."""
+    raw = spec.strip()
+    s = raw.lower()
     if s in ("linear", "srgb"):
         return _Response(s)
-    if s == "estimate":
-        return "estimate"
+    if s == "estimate" or s in CALIBRATIONS:
+        return s
+    if s.startswith("file:"):
+        return _read_response_table(path, raw[5:].strip())
+    if s.endswith(".csv"):
+        return _read_response_table(path, raw)
     if s.startswith("gamma:"):
         try:
             g = float(s[6:])
@@ -215,11 +286,12 @@ def _parse_response(path: str, spec: str) -> _Response | str:
         if not 0.2 <= g <= 5.0:
             raise PhotoError(f"photo {path}: response {spec!r} needs a gamma in [0.2, 5], e.g. gamma:2.2")
         return _Response(_gamma_name(g), g)
-    raise PhotoError(f"photo {path}: unknown response {spec!r}; use srgb, linear, gamma:G or estimate")
+    raise PhotoError(f"photo {path}: unknown response {spec!r}; use srgb, linear, gamma:G, estimate, debevec, robertson "
+                     "or file:TABLE.csv")
 
 
 def _response_request(path: str, linear: bool, response: str | None) -> tuple[_Response | str | None, str]:
-    """(requested response or "estimate" or None for the format's default, response_source)."""
+    """(requested response, "estimate", "debevec", "robertson", or None for the format's default; response_source)."""
     if response is not None and not isinstance(response, str):
         raise PhotoError(f"photo {path}: response must be a string, got {type(response).__name__}")
     if linear:
@@ -463,14 +535,22 @@ def _read_frame(path: str, kind: str) -> _Frame:
 # --------------------------------------------------------------------------
 
 def _tables(frame: _Frame, response: _Response) -> tuple[np.ndarray, np.ndarray]:
-    """(X, var_X) for every code 0..max_code of the frame under the response (module noise model)."""
+    """(X, var_X) for every code 0..max_code of the frame under the response (module noise model), shape
+    (max_code + 1,), or (max_code + 1, 3) for a per-channel response (read them with :func:`_lookup`)."""
     c = np.arange(frame.max_code + 1, dtype=np.float64) / frame.max_code
+    if response.per_channel:
+        c = c[:, None]
     x = response.decode(c)
     slope = response.slope(c)
     # quantisation: one code step of the frame is 1/levels of full scale in c for LDR; for RAW (linear) one DN.
     step = 1.0 / frame.levels
     var = x / SHOT_COUNT_FULL_SCALE + slope**2 * step**2 * (1.0 / 12.0 + frame.code_noise**2) + NOISE_FLOOR**2
     return x, var
+
+
+def _lookup(table: np.ndarray, codes: np.ndarray) -> np.ndarray:
+    """Values of a :func:`_tables` table at integer codes of shape (..., 3)."""
+    return table[codes] if table.ndim == 1 else table[codes, _RGB]
 
 
 def _subsample_step(shape: tuple[int, int]) -> int:
@@ -481,14 +561,14 @@ def _subsample_step(shape: tuple[int, int]) -> int:
 # Bracket statistics: response, exposure ratios, scene check
 # --------------------------------------------------------------------------
 
-def _pair_samples(a: _Frame, b: _Frame, step: int, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
-    """Encoded values (n,) of channels well exposed in both frames (subsampled grid)."""
+def _pair_samples(a: _Frame, b: _Frame, step: int, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Encoded values (n,) of channels well exposed in both frames (subsampled grid), and their channel (n,)."""
     ca = a.codes[::step, ::step].astype(np.float64) / a.max_code
     cb = b.codes[::step, ::step].astype(np.float64) / b.max_code
     ok = ((ca >= lo) & (ca <= hi) & (cb >= lo) & (cb <= hi)
           & ~a.high[::step, ::step] & ~b.high[::step, ::step] & ~a.low[::step, ::step] & ~b.low[::step, ::step]
           & (a.valid & b.valid)[::step, ::step, None])
-    return ca[ok], cb[ok]
+    return ca[ok], cb[ok], np.broadcast_to(_RGB, ok.shape)[ok]
 
 
 def _bin_medians(s: np.ndarray, d: np.ndarray, n_bins: int) -> np.ndarray:
@@ -521,7 +601,7 @@ def _estimate_response(frames: list[_Frame], order: list[int], rel_exp, step: in
     """Choose the response of a bracket's frames (module docstring); returns it and its scores."""
     pairs, log_k = [], []
     for i, j in zip(order[:-1], order[1:]):
-        ca, cb = _pair_samples(frames[i], frames[j], step, 0.02, 0.94)
+        ca, cb, _ = _pair_samples(frames[i], frames[j], step, 0.02, 0.94)
         if ca.size < MIN_RESPONSE_SAMPLES:
             continue
         pairs.append((ca, cb))
@@ -572,8 +652,8 @@ def _estimate_response(frames: list[_Frame], order: list[int], rel_exp, step: in
 
 
 def _log_ratio_samples(a: _Frame, b: _Frame, ra: _Response, rb: _Response, step: int, lo: float, hi: float) -> np.ndarray:
-    ca, cb = _pair_samples(a, b, step, lo, hi)
-    return np.log(np.maximum(rb.decode(cb), 1e-300)) - np.log(np.maximum(ra.decode(ca), 1e-300))
+    ca, cb, ch = _pair_samples(a, b, step, lo, hi)
+    return np.log(np.maximum(rb.decode(cb, ch), 1e-300)) - np.log(np.maximum(ra.decode(ca, ch), 1e-300))
 
 
 SCENE_BLOCK: int = 8
@@ -644,8 +724,9 @@ def _merge(frames: list[_Frame], responses: list[_Response], rel_exp: list[float
     tables = [_tables(f, r) for f, r in zip(frames, responses)]
     # Bounds of a censored channel: the decoded clip / black threshold (LDR); for RAW the pixel's own value
     # (after LibRaw's scaling) bounds it from below and one DN from above.
-    hi_thr = [None if f.clip_code is None else float(r.decode(np.array(f.clip_code))) for f, r in zip(frames, responses)]
-    lo_thr = [f.black_code if f.kind == "raw" else float(r.decode(np.array(f.black_code))) for f, r in zip(frames, responses)]
+    # (3,) per frame: a per-channel response has a threshold per channel.
+    hi_thr = [None if f.clip_code is None else r.decode(np.full(3, f.clip_code)) for f, r in zip(frames, responses)]
+    lo_thr = [f.black_code if f.kind == "raw" else r.decode(np.full(3, f.black_code)) for f, r in zip(frames, responses)]
     for r0 in range(0, h, MERGE_ROWS):
         rows = slice(r0, min(h, r0 + MERGE_ROWS))
         num = np.zeros((rows.stop - r0, w, 3))
@@ -657,8 +738,8 @@ def _merge(frames: list[_Frame], responses: list[_Response], rel_exp: list[float
         lo_bound = np.full_like(num, np.inf)
         for k, (f, (xt, vt), e) in enumerate(zip(frames, tables, rel_exp)):
             codes, fh, fl = f.codes[rows], f.high[rows], f.low[rows]
-            x = xt[codes] / e
-            wgt = np.where(fh | fl, 0.0, e * e / vt[codes])
+            x = _lookup(xt, codes) / e
+            wgt = np.where(fh | fl, 0.0, e * e / _lookup(vt, codes))
             num += wgt * x
             den += wgt
             all_high &= fh
@@ -722,6 +803,9 @@ def _read_linear_image(path: str, kind: str, exposures, linear: bool, response) 
     notes = []
     if isinstance(req, _Response) and req.name != "linear":
         raise PhotoError(f"photo {path}: a {kind.upper()} image is linear; response {response!r} applies to JPEG/PNG/TIFF")
+    if req in CALIBRATIONS:
+        raise PhotoError(f"photo {path}: a {kind.upper()} image is linear; response {req!r} calibrates a bracket of "
+                         "JPEG/PNG/TIFF frames")
     if req == "estimate":
         notes.append(f"a {kind.upper()} image is linear: the response is not estimated")
     exps = _check_exposures(path, exposures, 1)
@@ -794,6 +878,9 @@ def _frame_list_meta(frames, rel_exp, sources) -> list[dict]:
 
 def _read_single(path: str, kind: str, linear: bool, exposures, response) -> LinearPhoto:
     req, source = _response_request(path, linear, response)
+    if req in CALIBRATIONS:
+        raise PhotoError(f"photo {path}: response {req!r} needs a bracket (a folder of one scene's frames at different "
+                         "exposures); one file cannot calibrate it: pass the folder, or a table (file:TABLE.csv)")
     exps = _check_exposures(path, exposures, 1)
     frame = _read_frame(path, kind)
     notes = list(frame.info.pop("notes", []))
@@ -825,13 +912,15 @@ def _read_single(path: str, kind: str, linear: bool, exposures, response) -> Lin
     meta = _base_meta(kind, frame.bit_depth, ex)
     meta.update({"response": resp.name, "response_source": source,
                  "frames": _frame_list_meta([frame], [e], [esrc]), "noise": _noise_meta([frame])})
+    if resp.table is not None:
+        meta["response_curve"] = resp.table.curve()
     if frame.kind == "raw":
         meta.update({k: v for k, v in frame.info.items()})
     else:
         meta.update({"clip_level": DEFAULT_CLIP_LEVEL, "black_level": DEFAULT_BLACK_LEVEL})
     meta["notes"] = notes
     return LinearPhoto(rgb=rgb, variance=var, censored_high=high, censored_low=low, valid=valid,
-                       darkest=darkest, darkest_saturated=dsat, source=path, meta=meta)
+                       darkest=darkest, darkest_saturated=dsat, source=path, meta=meta, response_table=resp.table)
 
 
 def _bracket_files(folder: str) -> list[str]:
@@ -845,6 +934,36 @@ def _bracket_files(folder: str) -> list[str]:
             raise PhotoError(f"photo {folder}: {name!r} is not an image frame (extensions: {' '.join(PHOTO_EXTENSIONS)})")
         files.append(p)
     return files
+
+
+def _calibrate(folder: str, method: str, frames: list[_Frame], rel_exp: list[float], step: int):
+    """The bracket's response by Debevec & Malik 1997 or Robertson et al. 2003 (:mod:`skyfit.camera.response`) on the
+    subsampled frames, clipped, black and invalid values left out -> (_Response, TabulatedResponse); PhotoError
+    (one line) when the frames cannot constrain it."""
+    codes = np.stack([f.codes[::step, ::step] / float(f.max_code) for f in frames])
+    usable = np.stack([~f.high[::step, ::step] & ~f.low[::step, ::step] & f.valid[::step, ::step, None] for f in frames])
+    fn = debevec_response if method == "debevec" else robertson_response
+    try:
+        tab = fn(codes, rel_exp, max_code=1.0, usable=usable)
+    except ResponseError as e:
+        raise PhotoError(f"photo {folder}: response {method!r} cannot be calibrated: {e}") from None
+    return _Response(method, table=tab), tab
+
+
+def write_response_table(path, table: TabulatedResponse) -> Path:
+    """Write an inverse response as the CSV that ``response="file:PATH"`` reads: a header, then rows ``code, R, G, B``
+    (or ``code, X``) at every node of the table, codes in [0, 1]. Returns the path.
+
+    Args:
+        path: the CSV to write.
+        table: e.g. ``read_photo(folder, response="debevec").response_table``.
+    """
+    names = ("R", "G", "B") if table.channels == 3 else ("X",)
+    lines = ["code," + ",".join(names)]
+    lines += [",".join(f"{v:.9g}" for v in (c, *row)) for c, row in zip(table.codes, table.values)]
+    p = Path(os.fspath(path))
+    write_text_atomic(p, "\n".join(lines) + "\n")
+    return p
 
 
 def _read_bracket(folder: str, linear: bool, exposures, response) -> LinearPhoto:
@@ -900,10 +1019,21 @@ def _read_bracket(folder: str, linear: bool, exposures, response) -> LinearPhoto
 
     # Response.
     info = None
+    calibrate = req in CALIBRATIONS
     if frames[0].fixed_response is not None:
-        if isinstance(req, _Response) and req.name != "linear":
+        if (isinstance(req, _Response) and req.name != "linear") or calibrate:
             raise PhotoError(f"photo {folder}: RAW frames are linear; response {response!r} applies to JPEG/PNG/TIFF")
         resp, source = frames[0].fixed_response, ("--linear" if linear else "default")
+    elif calibrate:
+        # The calibration needs the exposures; without them their ratios come from the frames' overlap, read
+        # through the best parametric response (its notes are replaced by the one below).
+        resp = _Response("srgb")
+        if rel_exp is None:
+            resp, _ = _estimate_response(frames, order, None, step, [])
+            notes.append(f"response {req!r} without exposure times: the frames' exposure ratios were estimated through "
+                         f"the parametric response {resp.name} and the calibrated curve is consistent with them; a "
+                         "response and the ratios are known only together (Grossberg & Nayar 2003), so give exposures "
+                         "(or EXIF) for an absolute calibration")
     elif req is None or req == "estimate":
         resp, info = _estimate_response(frames, order, rel_exp, step, notes)
         source = "estimated" if info.get("method") != "fallback" else "default"
@@ -924,6 +1054,17 @@ def _read_bracket(folder: str, linear: bool, exposures, response) -> LinearPhoto
         rel_exp = [rel[i] for i in range(n)]
         notes.append("exposures were estimated from the frames' overlap (no EXIF exposure times, none given): "
                      "the relative exposures are ratios to the darkest frame")
+
+    calibration = None
+    if calibrate:
+        resp, calibration = _calibrate(folder, req, frames, rel_exp, step)
+        responses = [resp] * n
+        source = "calibrated"
+        ratio = calibration.info.get("constant_ratio")
+        if req == "robertson" and ratio is not None:
+            notes.append(f"the exposures step by one factor ({ratio:.3g}): a response is then known only up to a ripple of "
+                         "that period in log radiance (Grossberg & Nayar 2003), which Robertson's method cannot choose "
+                         "(10-30 % on a test bracket, docs/photos.md); response 'debevec' smooths it out")
 
     # One scene? After exposure normalisation the frames must agree over the pixels well exposed in both.
     for i, j in zip(order[:-1], order[1:]):
@@ -957,13 +1098,17 @@ def _read_bracket(folder: str, linear: bool, exposures, response) -> LinearPhoto
         meta["response_estimate"] = {k: v for k, v in info.items() if k != "scores"}
         if "scores" in info:
             meta["response_scores"] = {k: float(v) for k, v in info["scores"].items()}
+    if resp.table is not None:
+        meta["response_curve"] = resp.table.curve()
+    if calibration is not None:
+        meta["response_calibration"] = calibration.info
     if first.kind == "raw":
         meta["white_balance"] = [f.info["white_balance"] for f in frames]
     else:
         meta.update({"clip_level": DEFAULT_CLIP_LEVEL, "black_level": DEFAULT_BLACK_LEVEL})
     meta["notes"] = notes
     return LinearPhoto(rgb=rgb, variance=var, censored_high=high, censored_low=low, valid=valid,
-                       darkest=darkest, darkest_saturated=dsat, source=folder, meta=meta)
+                       darkest=darkest, darkest_saturated=dsat, source=folder, meta=meta, response_table=resp.table)
 
 
 def read_photo(path, *, linear: bool = False, exposures: Sequence[float] | None = None,
@@ -1052,4 +1197,5 @@ __all__ = [
     "PhotoError",
     "is_photo_path",
     "read_photo",
+    "write_response_table",
 ]
