@@ -561,7 +561,9 @@ def _add_photo_options(p) -> None:
     p.add_argument("--exposures", help="bracket folder: exposure times of the frames in file-name order, comma list [s] "
                    "(default: from EXIF, else estimated from the frames' overlap)")
     p.add_argument("--linear", action="store_true", help="photo: pixel values are linear (no sRGB decoding)")
-    p.add_argument("--response", help="photo: camera response srgb, linear, gamma:G or estimate (a bracket: from the frames)")
+    p.add_argument("--response", help="photo: camera response srgb, linear, gamma:G, estimate (a bracket: from the frames), "
+                   "debevec or robertson (a bracket: calibrated from its frames), or file:TABLE.csv (rows code,X or "
+                   "code,R,G,B; codes 0..1)")
 
 
 def _add_fit_parsers(sub) -> None:
@@ -861,7 +863,8 @@ def _add_batch_parser(sub) -> None:
                    "estimated from the image and the sun)")
     b.add_argument("--mask", help="photos: an image of the photos' size, non-zero = ignore (added to the automatic masks)")
     b.add_argument("--linear", action="store_true", help="photos: pixel values are linear (no sRGB decoding)")
-    b.add_argument("--response", help="photos: camera response srgb, linear, gamma:G or estimate")
+    b.add_argument("--response", help="photos: camera response srgb, linear, gamma:G, estimate, debevec or robertson "
+                   "(brackets: calibrated from their frames), or file:TABLE.csv (rows code,X or code,R,G,B; codes 0..1)")
     b.add_argument("--no-plots", action="store_true", help="do not write timeseries.png")
     b.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (resolved on each worker); default cpu")
     b.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar over the items (default: on a terminal)")

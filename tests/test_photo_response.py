@@ -126,8 +126,10 @@ def one_line(excinfo):
 # The calibrations recover a known curve
 # ----------------------------------------------------------------------------------------------
 
-# Measured (module docstring's scene, this file's seeds): after a per-channel scale Debevec 0.8-1.0 %, Robertson
-# 0.4-0.6 %; with the X(1) = 1 normalisation (the top codes extrapolated) 1.4-2.2 % and 0.8-1.1 %.
+# Measured (this file's scene and seeds; the command is in docs/photos.md): curve after a per-channel scale Debevec
+# 0.9-1.3 %, Robertson 0.5-0.7 %; as normalised to X(1) = 1 (the top codes extrapolated) 0.8-2.4 % and 0.8-1.1 %.
+# Merged radiance median / 95th percentile 0.72 / 2.1 % and 0.58 / 1.8 % (the true curve as a table: 0.56 / 1.7 %,
+# the 1 % noise); the parametric estimate chooses linear: 16.7 / 86 %.
 @pytest.mark.parametrize("method", ["debevec", "robertson"])
 def test_calibration_recovers_a_filmic_curve_and_the_radiance(brackets, method):
     folder, kind, exps, L, _ = brackets["filmic"]
@@ -189,7 +191,7 @@ def test_a_constant_exposure_ratio_leaves_robertson_a_ripple_and_debevec_smooths
     deb = read_photo(folder, exposures=exps, response="debevec")
     rob = read_photo(folder, exposures=exps, response="robertson")
     deb_err, rob_err = curve_errors(deb.response_table, kind)[0], curve_errors(rob.response_table, kind)[0]
-    # measured: Debevec 1.1-1.4 %, Robertson 15-35 % (Grossberg & Nayar 2003's ambiguity; constant_exposure_ratio)
+    # measured: Debevec 1.1-1.2 %, Robertson 29-32 % (Grossberg & Nayar 2003's ambiguity; constant_exposure_ratio)
     assert deb_err < 0.03 and rob_err > 3 * deb_err, (deb_err, rob_err)
     assert any("step by one factor (4)" in n for n in rob.meta["notes"])
     assert not any("step by one factor" in n for n in deb.meta["notes"])
@@ -201,7 +203,8 @@ def test_an_srgb_bracket_calibrates_to_the_srgb_curve(brackets, method):
     folder, kind, exps, L, _ = brackets["srgb"]
     ph = read_photo(folder, exposures=exps, response=method)
     shape_err, raw_err = curve_errors(ph.response_table, "srgb")
-    # measured 0.7-1.2 % (Debevec), 0.3-0.5 % (Robertson) after the scale
+    # measured 0.6-0.7 % (Debevec), 0.5-0.7 % (Robertson) after the scale; radiance median 0.68 % for both and for
+    # the parametric estimate, which chooses sRGB
     assert shape_err < 0.03 and raw_err < 0.04, (shape_err, raw_err)
     assert radiance_error(ph, L)[0] < 0.01
 
@@ -231,7 +234,7 @@ def test_csv_table_round_trip(brackets, tmp_path):
     # 17 codes k/16 fall between the table's nodes j/255: linear interpolation, 2e-5 from the curve
     np.testing.assert_allclose(ph.meta["response_curve"]["G"], true_curve(kind, np.linspace(0, 1, 17))[:, 1], rtol=1e-4)
     med, p95 = radiance_error(ph, L)
-    assert med < 0.006 and p95 < 0.02, (med, p95)
+    assert med < 0.008 and p95 < 0.025, (med, p95)  # measured 0.56 / 1.7 %: the frames' 1 % noise
     # the truth's own scale too: rgb = X / t with X in [0, 1] of full scale
     meas = ~ph.censored_high & ~ph.censored_low
     assert abs(np.median(ph.rgb[meas] / L[meas]) - 1) < 0.005

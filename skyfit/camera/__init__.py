@@ -1,5 +1,5 @@
-"""Fisheye cameras (directions per pixel, masks), fisheye sky images, the sun's position, and photos (LDR and synthetic);
-the camera from a photo (circle, sun, heading: autocal) and what is not sky in it (masks)."""
+"""Fisheye cameras (directions per pixel, masks), fisheye sky images, the sun's position, and photos (LDR and synthetic,
+calibrated responses); the camera from a photo (circle, sun, heading: autocal) and what is not sky in it (masks)."""
 from .autocal import (
     CalibrationError,
     CameraGuess,
@@ -25,6 +25,7 @@ from .kannala_brandt import check_kb_monotone, kb_derivative, kb_polynomial, kb_
 from .likelihood import censored_gaussian_nll, fit_exposure_scale
 from .masks import grow_outlier_mask, obstacle_mask, sun_mask
 from .photo_io import PhotoObservation, load_ldr_photo
+from .response import ResponseError, TabulatedResponse, debevec_response, robertson_response, table_response
 from .sensor import SyntheticPhoto, spectral_response_matrix, synthesize_photo, vignetting_map
 from .srgb import srgb_decode, srgb_encode
 from .sun import SunPosition, delta_t_espenak_meeus, julian_day, parse_location, parse_time, sun_position
@@ -37,13 +38,16 @@ __all__ = [
     "Circle",
     "FisheyeCamera",
     "PhotoObservation",
+    "ResponseError",
     "SkyImage",
     "SunDetection",
     "SunPosition",
     "SyntheticPhoto",
+    "TabulatedResponse",
     "cameras_from_sun",
     "censored_gaussian_nll",
     "check_kb_monotone",
+    "debevec_response",
     "delta_t_espenak_meeus",
     "detect_circle",
     "detect_sun",
@@ -61,6 +65,7 @@ __all__ = [
     "parse_time",
     "render_fisheye",
     "reproject",
+    "robertson_response",
     "rho_to_theta",
     "spectral_response_matrix",
     "srgb_decode",
@@ -68,6 +73,7 @@ __all__ = [
     "sun_mask",
     "sun_position",
     "synthesize_photo",
+    "table_response",
     "theta_to_rho",
     "vignetting_map",
     "zenith_azimuth_to_enu",

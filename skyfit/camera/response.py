@@ -325,7 +325,7 @@ def constant_exposure_ratio(exposures) -> float | None:
     With one ratio ``r`` between all frames, a response is known from the frames only up to a ripple periodic in
     ``ln X`` with period ``ln r`` (the data compare ``X`` with ``r^k X`` only): Grossberg & Nayar 2003, "What can be
     known about the radiometric response from images?", the fractal ambiguity. Debevec's smoothness term picks
-    the smoothest such curve; Robertson's method has none, so on such a bracket its curve ripples (10-30 % on the
+    the smoothest such curve; Robertson's method has none, so on such a bracket its curve ripples (29-32 % on the
     tests' 4x bracket).
 
     Args:
@@ -481,7 +481,7 @@ def _robertson_operator(c: np.ndarray, w: np.ndarray, t: np.ndarray, levels: int
     """
     from scipy import sparse  # here: scipy loads in ~0.5 s, only calibrations need it
 
-    p, s = c.shape
+    s = c.shape[1]
     k0, f = _interp_rows(c, levels)
     jj, ii = np.nonzero(w > 0)
     n = jj.size
@@ -503,12 +503,12 @@ def _robertson_channel(c: np.ndarray, w: np.ndarray, t: np.ndarray, levels: int,
     """I on the levels for one channel (c, w of shape (P, S); t (P,)).
 
     Robertson's iteration, normalised at every step, is a power iteration of the non-negative matrix M of
-    :func:`_robertson_operator`: it converges to M's Perron vector, at the rate of M's second eigenvalue,
+    :func:`_robertson_operator`: it converges to M's Perron vector at the rate of M's second eigenvalue,
     which is close to 1 when a level's update is dominated by its own sample (a pixel's brightest
-    well-exposed frame weighs t^2). From a power-law start the tests' 6-frame bracket was still 11-20 %
-    from the true curve after 2000 iterations (noise-free). The Perron vector is therefore taken directly
-    (np.linalg.eig of the <= 256 x 256 matrix), then ``iterations`` of the published update are applied
-    (their last relative change is reported: ~1e-12 shows it is the iteration's fixed point).
+    well-exposed frame weighs t^2): 0.93-0.97 on the tests' 7 frames at irregular ratios, 0.9996-0.9999 on
+    their 6 frames 4x apart, i.e. hundreds to thousands of steps. The Perron vector is
+    therefore taken directly (np.linalg.eig of the <= 256 x 256 matrix), then ``iterations`` of the
+    published update are applied (their last relative change is reported: ~1e-14 shows it is the fixed point).
     Returns (I scaled to I(1) = 1 after filling unmeasured levels, last change).
     """
     m, measured = _robertson_operator(c, w, t, levels)

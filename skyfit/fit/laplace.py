@@ -84,10 +84,15 @@ def derived_functions(problem: FitProblem):
     out = {}
     if "mie_beta_550" in free or ("mie_aod_550" in free):
         other = "mie_aod_550" if "mie_beta_550" in free else "mie_beta_550"
-        if other == "mie_aod_550":
-            out[other] = lambda x: p._beta_550(p.to_physical(x)) * p.to_physical(x)["mie_scale_height"]
+        if other == "mie_aod_550":  # beta_550 x the column height (H_M, or h_mix + H_M for the boundary layer)
+            out[other] = lambda x: (lambda ph: p._beta_550(ph) * p._column_height(ph))(p.to_physical(x))
         else:
             out[other] = lambda x: p._beta_550(p.to_physical(x))
+    from .parameters import COARSE_MODE, LOGNORMAL_MIE
+
+    if free & {*LOGNORMAL_MIE, *COARSE_MODE}:  # what the size distribution implies: alpha, g, ssa (delta method)
+        for name in ("mie_angstrom_alpha", "mie_g", "mie_ssa"):
+            out[name] = (lambda n: lambda x: p.lognormal_optics_derived(p.to_physical(x))[n])(name)
     return out
 
 

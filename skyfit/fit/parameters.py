@@ -636,16 +636,25 @@ class Parameterisation:
         (Hansen & Travis 1974, eqs. 2.53-2.54). Those with parameter names replace the config's values in reports."""
         with torch.no_grad():
             rg, sg = phys["mie_median_radius"].reshape(()), phys["mie_geometric_sigma"].reshape(())
-            lam = torch.tensor([440.0, 550.0, 870.0], dtype=torch.float64)
-            coarse = (tuple(phys[n].reshape(()).double().cpu() for n in COARSE_MODE) if self.coarse_mode() else None)
-            o = lognormal_mie_optics(lam, rg.double().cpu(), sg.double().cpu(), self._refractive_index, coarse)
-            alpha = -math.log(float(o.extinction[0] / o.extinction[2])) / math.log(440.0 / 870.0)
-            out = {"mie_angstrom_alpha": alpha, "mie_g": float(o.asymmetry[1]), "mie_ssa": float(o.ssa[1]),
-                   "mie_effective_radius": effective_radius(float(rg), float(sg)),
-                   "mie_effective_variance": effective_variance(float(sg))}
-            if coarse is not None:  # the effective radius and variance above are the fine mode's
-                out["mie_coarse_effective_radius"] = effective_radius(float(coarse[0]), float(coarse[1]))
+            out = {n: float(v) for n, v in self.lognormal_optics_derived(phys).items()}
+            out.update({"mie_effective_radius": effective_radius(float(rg), float(sg)),
+                        "mie_effective_variance": effective_variance(float(sg))})
+            if self.coarse_mode():  # the effective radius and variance above are the fine mode's
+                out["mie_coarse_effective_radius"] = effective_radius(float(phys["mie_coarse_radius"]),
+                                                                      float(phys["mie_coarse_sigma"]))
             return out
+
+    def lognormal_optics_derived(self, phys: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        """The lognormal_mie aerosol's Angstrom exponent (440/870 nm), asymmetry and single-scattering albedo at
+        550 nm as differentiable float64 tensors of ``phys`` (for :meth:`lognormal_derived` and the Laplace sigma
+        of derived quantities, :func:`skyfit.fit.laplace.derived_functions`)."""
+        D = lambda v: v.reshape(()).to(torch.float64)  # noqa: E731
+        rg, sg = D(phys["mie_median_radius"]), D(phys["mie_geometric_sigma"])
+        lam = torch.tensor([440.0, 550.0, 870.0], dtype=torch.float64, device=rg.device)
+        coarse = tuple(D(phys[n]) for n in COARSE_MODE) if self.coarse_mode() else None
+        o = lognormal_mie_optics(lam, rg, sg, self._refractive_index, coarse)
+        alpha = -torch.log(o.extinction[0] / o.extinction[2]) / math.log(440.0 / 870.0)
+        return {"mie_angstrom_alpha": alpha, "mie_g": o.asymmetry[1], "mie_ssa": o.ssa[1]}
 
     def nuisance(self, phys: Mapping[str, Tensor], i: int) -> dict[str, Tensor]:
         """Observation ``i``'s nuisance values (shape ()) from :meth:`to_physical`'s dict."""

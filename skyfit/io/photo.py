@@ -58,6 +58,17 @@ images (``g`` and ``g^k`` explain them equally with ratios ``r^k``: Grossberg &
 Nayar 2003, "the exponential ambiguity"): then only the *class* is chosen,
 sRGB against a power law, and a power law is taken as gamma 2.2 for 8-bit
 frames and linear for 16-bit ones, with a note. RAW files are linear.
+
+**Calibrated responses.** ``response="debevec"`` or ``"robertson"`` calibrates a bracket's response per
+channel from its own frames (:mod:`skyfit.camera.response`: Debevec & Malik 1997, Robertson et al. 2003) on
+the subsampled frames without their clipped, black and invalid values, with the relative exposures from EXIF,
+``exposures=``, or (neither) the ratios estimated from the frames' overlap through the best parametric
+response, with a note (the ratios and a response are known only together). ``response="file:TABLE.csv"``
+(or a path ending ``.csv``) reads a calibrated inverse response: rows ``code, X`` or ``code, R, G, B``, codes
+from 0 to 1 strictly increasing, values finite, >= 0 and non-decreasing (any scale: divided by the value at
+code 1); it applies to single files too. Both are tabulated curves, interpolated linearly, whose slope
+feeds the noise model; ``meta["response_curve"]`` holds 17 points per channel and
+:attr:`LinearPhoto.response_table` the whole table (:func:`write_response_table` writes it as such a CSV).
 """
 from __future__ import annotations
 
@@ -75,7 +86,6 @@ from ..camera.photo_io import DEFAULT_BLACK_LEVEL, DEFAULT_CLIP_LEVEL, png_bit_d
 from ..camera.response import (
     ResponseError,
     TabulatedResponse,
-    constant_exposure_ratio,
     debevec_response,
     robertson_response,
     table_response,
@@ -1064,7 +1074,7 @@ def _read_bracket(folder: str, linear: bool, exposures, response) -> LinearPhoto
         if req == "robertson" and ratio is not None:
             notes.append(f"the exposures step by one factor ({ratio:.3g}): a response is then known only up to a ripple of "
                          "that period in log radiance (Grossberg & Nayar 2003), which Robertson's method cannot choose "
-                         "(10-30 % on a test bracket, docs/photos.md); response 'debevec' smooths it out")
+                         "(about 30 % on a test bracket, docs/photos.md); response 'debevec' smooths it out")
 
     # One scene? After exposure normalisation the frames must agree over the pixels well exposed in both.
     for i, j in zip(order[:-1], order[1:]):
@@ -1122,8 +1132,9 @@ def read_photo(path, *, linear: bool = False, exposures: Sequence[float] | None 
         linear: the LDR codes are linear (same as ``response="linear"``).
         exposures: relative exposure of each frame (e.g. exposure times [s]), in the folder's sorted
             file order; one value for a file. Used when EXIF lacks exposure times.
-        response: "srgb", "linear", "gamma:G" or "estimate". Default: sRGB for one LDR file, estimated
-            for a bracket; RAW, .hdr and EXR are linear.
+        response: "srgb", "linear", "gamma:G", "estimate", "debevec" or "robertson" (a bracket's response
+            calibrated from its frames), or "file:TABLE.csv" (a calibrated inverse response; module
+            docstring). Default: sRGB for one LDR file, estimated for a bracket; RAW, .hdr and EXR are linear.
 
     Returns:
         A :class:`LinearPhoto` of shape (H, W, 3) in relative units.
@@ -1133,7 +1144,9 @@ def read_photo(path, *, linear: bool = False, exposures: Sequence[float] | None 
             image; unsupported bit depth or channel count; a 16-bit RGB PNG read as 8 bits; a
             bracket of fewer than 2 frames, mixed formats, frames of different sizes, different
             scenes, or (without exposures) frames with no well-exposed overlap; a wrong number of
-            exposures; NaN, infinite or negative values in a .hdr/EXR; contradictory options.
+            exposures; NaN, infinite or negative values in a .hdr/EXR; contradictory options; a
+            calibration asked of one file, or of frames too few or too alike to constrain it; a missing
+            or malformed response table.
     """
     p = os.fspath(path)
     if os.path.isdir(p):
