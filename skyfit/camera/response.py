@@ -67,6 +67,9 @@ MIN_CODE_SPAN: float = 0.5
 more than half the codes, which a calibration should not pretend to know."""
 MIN_EXPOSURE_RATIO: float = 1.01
 """Exposures closer than this ratio count as equal [1]: equal exposures say nothing about the response."""
+CONSTANT_RATIO_TOL: float = 0.1
+"""Adjacent log exposure ratios within this fraction of their mean count as one constant ratio [1]
+(:func:`constant_exposure_ratio`)."""
 SLOPE_FLOOR: float = 1e-3
 """Least slope dX/dc of a tabulated response [1], as a fraction of its mean slope X(1) - X(0): in the noise model of
 :mod:`skyfit.io.photo` a flat part of the curve would otherwise have no quantisation noise, hence too much weight."""
@@ -313,10 +316,6 @@ def _spread_sample(c: np.ndarray, w: np.ndarray, useful: np.ndarray, n_max: int,
     if sel.size > n_max:
         sel = np.sort(rng.choice(sel, n_max, replace=False))
     return sel
-
-
-CONSTANT_RATIO_TOL: float = 0.1
-"""Adjacent log exposure ratios within this fraction of their mean count as one constant ratio [1]."""
 
 
 def constant_exposure_ratio(exposures) -> float | None:
