@@ -557,6 +557,25 @@ def _fixed_camera_values(meta: dict | None) -> dict:
     return out
 
 
+PROJECTION_SCORE_TOL_DEG = 1.0
+"""Projections whose sun-radius scores (:func:`skyfit.camera.autocal.cameras_from_sun`) lie within this of the
+best are told apart by short fits of the sky pattern, not by the sun. [deg]"""
+
+
+def projection_decision(candidates: Sequence, detected) -> list:
+    """The candidate cameras the sun alone cannot tell apart, best first; one (the sun decides) or several.
+
+    Several when no sun was detected, when it was found only as an extended saturated region (its deepest point
+    places the sun's azimuth well, its radius not), or for the candidates whose score is within
+    :data:`PROJECTION_SCORE_TOL_DEG` of the best's: :func:`fit_scene` fits each briefly and keeps the lowest loss.
+    """
+    if not candidates:
+        return []
+    best = candidates[0]
+    vague = detected is None or getattr(detected, "extended", False)
+    return [c for c in candidates if vague or c.score - best.score < PROJECTION_SCORE_TOL_DEG]
+
+
 def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None, camera_meta: dict | None = None,
               laplace: bool = True, progress: bool = False, device="cpu", second_pass: bool = True,
               choose_projection: bool = True) -> PhotoFit:
@@ -608,9 +627,7 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     # the projection by evidence: candidates the sun alone cannot tell apart are fitted and scored by their loss
     if scene.candidates and choose_projection:
         best = scene.candidates[0]
-        # an extended saturated region places the sun's azimuth (heading) well, its radius (projection) not
-        vague = scene.detected_sun is None or getattr(scene.detected_sun, "extended", False)
-        close = [c for c in scene.candidates if vague or c.score - best.score < 1.0]
+        close = projection_decision(scene.candidates, scene.detected_sun)
         if len(close) > 1:
             scores = []
             for c in close:
