@@ -27,6 +27,7 @@ from .atmosphere.wavelengths import DEFAULT_WAVELENGTHS, parse_wavelengths
 from .camera import PROJECTIONS, FisheyeCamera, parse_location, parse_time, render_fisheye, sun_position
 from .export import FORMATS, bruneton2017, export_luts
 from .export.unreal import export_unreal
+from .fit.budget import DISCREPANCY_MODELS, SIGMA_MODES
 from .fit.problem import DTYPES, FitSettings
 from .fit.report import dumps
 from .fit.results import atmosphere_from_result, read_result
@@ -497,6 +498,7 @@ FIT_FLAGS = {
     "max_iter": "max_iter", "adam_steps": "adam_steps", "seed": "seed", "wavelengths": "wavelengths",
     "min_elevation": "min_elevation_deg", "sun_mask": "sun_mask_deg", "max_samples": "max_samples",
     "sigma_relative": "sigma_relative", "accuracy": "accuracy", "sigma": "sigma", "optimiser": "optimiser",
+    "sigma_discrepancy": "sigma_discrepancy",
 }
 """The per-fit flags of ``fit`` and ``batch`` (argparse dest -> FitSettings field)."""
 
@@ -533,9 +535,12 @@ def _add_fit_options(p, D) -> None:
     p.add_argument("--sun-mask", type=float, help=f"images: radius of the disk around the sun left out [deg] (default {D.sun_mask_deg:g})")
     p.add_argument("--max-samples", type=int, help="images: use every k-th pixel so that at most this many remain")
     p.add_argument("--sigma-relative", type=float, help=f"images: relative noise when the header has none (default {D.sigma_relative:g})")
-    p.add_argument("--sigma", choices=("total", "noise"),
+    p.add_argument("--sigma", choices=SIGMA_MODES,
                    help=f"--laplace sigma: total (noise + numerical model error + discrepancy floor) or noise only "
                         f"(default {D.sigma}; docs/uncertainty.md)")
+    p.add_argument("--sigma-discrepancy", choices=DISCREPANCY_MODELS,
+                   help=f"--sigma total's discrepancy term: a white relative error floor, a cluster-robust sandwich over "
+                        f"sky regions, or the larger of the two (default {D.sigma_discrepancy}; docs/uncertainty.md)")
     p.add_argument("--location", help="LAT,LON[,ELEV] [deg, deg, m]: a photo's place (required), Kider data's site "
                    "(default: the Kider site)")
     p.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")

@@ -20,19 +20,34 @@ the unconstrained vector x at the optimum x*, so that the reported sigma is the 
    fitted value is left as it is; dx is reported (``numerical_shift``) and treated as an
    error: cov += dx dx^T.
 2. **Discrepancy** (what no setting of this model family resolves, e.g. a two-term phase
-   function fitted with one term). A relative error floor f is added in quadrature to each
-   element's sigma, sigma'^2 = sigma^2 + (f m)^2, with f chosen so that the chi^2 of the
-   residuals left after the numerical correction (o - m_fit(x* + dx) - delta) equals its
-   degrees of freedom, n_elements - P (Birge 1932's ratio, spread as a relative floor). f = 0
-   when chi^2 <= dof. Its covariance is the Gauss-Newton (J^T W' J)^-1 with sigma' minus that
-   with sigma (positive semi-definite; the full Hessian with sigma' need not be, x* not being
-   the optimum of the inflated problem), added to the noise's H^-1.
+   function fitted with one term). Two models (``discrepancy``) and their bound, each a Gauss-Newton covariance
+   of the residuals r left after the numerical correction (o - m_fit(x* + dx) - delta) minus the
+   noise's (J^T W J)^-1, added to the noise's H^-1:
 
-Total: cov_x = H^-1 + [(J^T W' J)^-1 - (J^T W J)^-1] + dx dx^T. ``sigma`` of the result is this total; ``budget`` holds the
-parts (``sigma_noise``, ``sigma_numerical``, ``sigma_discrepancy``), the floor, chi^2/dof and
-the shift. The floor is a white-noise model: model errors correlated over the sky are what
-the numerical term is for; what is left after it is small where the fit's family contains
-the truth (docs/uncertainty.md, "Honest sigma under model error", measures the coverage).
+   * ``floor``: a white relative error floor f added in quadrature to each element's sigma,
+     sigma'^2 = sigma^2 + (f m)^2, with f chosen so that chi^2 of r equals its degrees of freedom,
+     n_elements - P (Birge 1932's ratio, spread as a relative floor); f = 0 when chi^2 <= dof.
+     Its share: (J^T W' J)^-1 - (J^T W J)^-1 (positive semi-definite; the full Hessian with
+     sigma' need not be, x* not being the optimum of the inflated problem).
+   * ``sandwich``: the cluster-robust sandwich (Liang & Zeger 1986, Biometrika 73, 13; White 1980,
+     Econometrica 48, 817 for the heteroscedastic form) over sky regions that share a systematic
+     model error (:func:`sky_clusters`: equal-count bins in scattering angle x view zenith, all
+     channels of a sample in one cluster),
+
+         V = A^-1 (sum_c s_c s_c^T) A^-1 G / (G - 1),   A = J^T W J,   s_c = sum_{e in c} J_e^T W_e r_e
+
+     with G clusters; its share is the positive part of V - A^-1. A model error that is smooth
+     over the sky (a phase function's, following the scattering angle) makes the scores of a
+     cluster add up where the white floor's cancel.
+   * ``larger``: a minimal upper bound of the two totals A^-1 + D_floor and A^-1 + D_sandwich (at
+     least each along every direction, equal to the larger where one contains the other;
+     :func:`loewner_upper`), less A^-1.
+
+Total: cov_x = H^-1 + D + dx dx^T, D the chosen model's share. ``sigma`` of the result is this total;
+``budget`` holds the parts (``sigma_noise``, ``sigma_numerical``, ``sigma_discrepancy`` of the chosen
+model, ``sigma_discrepancy_floor`` and ``sigma_discrepancy_sandwich`` of each where computed), the
+floor, the clusters (``discrepancy``), chi^2/dof and the shift. docs/uncertainty.md, "Honest sigma
+under model error", measures the coverage of each model on skies rendered by a richer model.
 """
 from __future__ import annotations
 
@@ -56,6 +71,20 @@ from .parameters import FitError
 
 SIGMA_MODES = ("total", "noise")
 """``fit.sigma``: ``total`` (noise + numerical + discrepancy, the default) or ``noise`` (the Laplace sigma of the noise alone)."""
+DISCREPANCY_MODELS = ("floor", "sandwich", "larger")
+"""``fit.sigma_discrepancy``: the discrepancy term's model (module docstring, term 2)."""
+DISCREPANCY_DEFAULT = "floor"
+"""The default discrepancy model (docs/uncertainty.md, "Coverage under model error", says why)."""
+CLUSTERS = 24
+"""Target number of sandwich clusters per observation, 8 scattering-angle x 3 view-zenith bins
+(:func:`sky_clusters`). The cluster-robust covariance has rank <= G - 1 and a relative spread of its
+variances of about sqrt(2 / (G - 1)) (0.30 at 24), so G must be well above the number of parameters
+(Cameron & Miller 2015, J. Human Resources 50, 317: unreliable below ~20-50 clusters); fewer, larger
+clusters hold more of a smooth error's correlation. 24 is the compromise on a sky of ~60 used samples
+(3 a cluster); docs/uncertainty.md compares 12 and 24 in the coverage study."""
+MIN_PER_CLUSTER = 3
+"""Fewest used samples per sandwich cluster: an observation with N samples gets min(G, N // 3) clusters,
+one per sample when that is < 2 (spectra at a few directions). [1]"""
 
 REFERENCE_LIGHT_SAMPLES = 32
 """Gauss-Legendre nodes of the reference's optical depth (skyfit.tools.trade's reference_light)."""
@@ -315,52 +344,162 @@ def prediction_jacobian(problem: FitProblem, x: Tensor) -> list[Tensor]:
     return out
 
 
-def gauss_newton_covariance(problem: FitProblem, jac: list[Tensor], preds, floor: float, phys: dict) -> Tensor:
-    """(J_r^T J_r)^-1 of the whitened residuals r with sigma'^2 = sigma^2 + (floor m)^2 (uncensored used
-    elements; a linear or log residual), shape (P, P). [x units^2]"""
-    rows = []
+def whitened_jacobian(problem: FitProblem, jac: list[Tensor], preds, floor: float, phys: dict) -> list[Tensor]:
+    """Per observation, d r / dx of the whitened residual r with sigma'^2 = sigma^2 + (floor m)^2 (a linear or log
+    residual), zero at censored elements, shape (N_i, C_i, P), float64. [1 / x units]"""
+    out = []
     for i, (Jm, m, o) in enumerate(zip(jac, preds, problem.observations)):
         s = o.sigma[o.mask] * phys_noise_scale(problem, phys, i)
         sp = torch.sqrt(s**2 + (floor * m) ** 2)
         w = 1.0 / sp if problem.loss.residual == "linear" else o.values[o.mask] / (m.clamp_min(1e-300) * sp)
         keep = _uncensored(problem, i, m)
-        rows.append((Jm * w.unsqueeze(-1))[keep])
-    Jr = torch.cat(rows).to(torch.float64)
-    G = Jr.T @ Jr
+        out.append((Jm * (w * keep).unsqueeze(-1)).to(torch.float64))
+    return out
+
+
+def _pinv_sym(G: Tensor) -> Tensor:
     return torch.linalg.pinv(0.5 * (G + G.T), hermitian=True)
 
 
-def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, reference: SkyModel | None = None,
-                 numerical: bool = True, floor: bool = True, refits: int = 0, options: FitOptions | None = None) -> dict:
-    """The Laplace summary with the total sigma (noise + numerical + discrepancy) and its breakdown.
+def gauss_newton_covariance(problem: FitProblem, jac: list[Tensor], preds, floor: float, phys: dict) -> Tensor:
+    """(J_r^T J_r)^-1 of the whitened residuals r with sigma'^2 = sigma^2 + (floor m)^2 (uncensored used
+    elements; a linear or log residual), shape (P, P). [x units^2]"""
+    Jr = torch.cat([j.reshape(-1, j.shape[-1]) for j in whitened_jacobian(problem, jac, preds, floor, phys)])
+    return _pinv_sym(Jr.T @ Jr)
+
+
+def sky_clusters(problem: FitProblem, phys: dict, clusters: int = CLUSTERS, min_count: int = MIN_PER_CLUSTER) -> list[Tensor]:
+    """Sky regions that share a systematic model error: a cluster label for every used sample of each observation.
+
+    Per observation with N used samples, G = min(``clusters``, N // ``min_count``) clusters: the samples sorted by
+    scattering angle (view direction against the sun, with the fitted sun offsets and camera tilts) are cut into
+    n_theta equal-count bins, and each bin, sorted by view zenith, into n_zeta equal-count bins, with
+    n_zeta = max(1, round(sqrt(G / 3))) and n_theta = G // n_zeta (24: 8 x 3; a phase-function error follows
+    the scattering angle, an air-mass or profile error the zenith). When G < 2 (spectra at a few directions)
+    each sample is its own cluster. All channels of a sample share its label; labels run on over the
+    observations (0 .. total - 1), so no cluster spans two observations.
 
     Args:
-        problem: the fit problem; x: the fitted unconstrained vector, shape (P,).
-        lap: :func:`skyfit.fit.laplace.laplace_summary` at x (computed when None).
-        reference: the converged renderer (default :meth:`ReferenceModel.of` the fit's).
-        numerical, floor: include the numerical term / the discrepancy floor.
-        refits: 0: the numerical shift is one Newton step; N > 0: up to N lagged refits with the
-            reference's factor (:func:`refit_shift`; for shifts too large for the linearisation).
-        options: the refits' optimiser options (default 1 start, 100 L-BFGS iterations).
+        problem: the fit problem; phys: :meth:`Parameterisation.to_physical` at the fit.
+        clusters: target number of clusters per observation, >= 2.
+        min_count: fewest samples per cluster, >= 1.
 
     Returns:
-        ``lap``'s keys with ``sigma``, ``interval68``, ``interval95``, ``covariance``, ``correlation``,
-        ``derived`` of the total covariance, ``sigma_mode`` "total", ``sigma_noise`` (the Laplace sigma)
-        and ``budget``: ``sigma_noise``, ``sigma_numerical``, ``sigma_discrepancy`` (name -> [SI]),
-        ``numerical_shift`` (name -> physical value after the Newton step minus the fitted one [SI]),
-        ``derived`` (the same for derived quantities), ``floor_relative`` f [1] and its range
-        ``floor_relative_68`` (chi^2 at dof -+ sqrt(2 dof)), ``chi2_per_dof`` (at the fit),
-        ``chi2_per_dof_corrected`` (after the numerical correction), ``dof``, ``reference`` (the
-        converged renderer's settings), ``model_difference`` (rms of delta / m and delta / sigma), ``seconds``.
+        One int64 tensor of labels per observation, shape (N_i,) over its used samples.
     """
-    t0 = time.perf_counter()
+    if int(clusters) < 2 or int(min_count) < 1:
+        raise FitError(f"sandwich clusters must be >= 2 and min_count >= 1, got {clusters!r} and {min_count!r}")
+    out, offset = [], 0
+    with torch.no_grad():
+        for i, o in enumerate(problem.observations):
+            d = problem.view_directions(phys, i)
+            sun = problem.sun_vectors(phys, i)
+            if sun.ndim == 2:
+                sun = sun[o.mask]
+            n = d.shape[0]
+            labels = torch.empty(n, dtype=torch.int64, device=d.device)
+            g = min(int(clusters), n // int(min_count))
+            if g < 2:  # a few directions: one cluster each
+                labels[:] = torch.arange(n, device=d.device)
+                out.append(labels + offset)
+                offset += n
+                continue
+            cos_theta = (d * sun).sum(-1).clamp(-1.0, 1.0)
+            n_zeta = max(1, int(round(math.sqrt(g / 3.0))))
+            n_theta = g // n_zeta
+            k = 0
+            for theta_bin in torch.tensor_split(torch.argsort(-cos_theta, stable=True), n_theta):  # scattering angle up
+                for zeta_bin in torch.tensor_split(theta_bin[torch.argsort(-d[theta_bin, 2], stable=True)], n_zeta):
+                    labels[zeta_bin] = k
+                    k += 1
+            out.append(labels + offset)
+            offset += k
+    return out
+
+
+def sandwich_covariance(problem: FitProblem, jac: list[Tensor], preds, residual_preds, labels: list[Tensor],
+                        phys: dict) -> tuple[Tensor, Tensor]:
+    """The cluster-robust sandwich covariance of x and the Gauss-Newton A^-1 it wraps (module docstring, term 2).
+
+    Args:
+        problem: the fit problem; jac: :func:`prediction_jacobian` at the fit, list of (N_i, C_i, P).
+        preds: the model at the fit (its weights for a log residual), list of (N_i, C_i) [data units].
+        residual_preds: the model whose residuals o - m enter the scores (the numerically corrected one).
+        labels: :func:`sky_clusters`, list of (N_i,).
+        phys: the physical values at the fit (the noise scale).
+
+    Returns:
+        (V, A^-1), each (P, P): V = A^-1 (sum_c s_c s_c^T) A^-1 G / (G - 1) with s_c the sum of J_e^T W_e r_e over
+        the uncensored elements of cluster c; G the number of clusters with used elements. [x units^2]
+    """
+    Jr = whitened_jacobian(problem, jac, preds, 0.0, phys)
+    P = Jr[0].shape[-1]
+    G = int(max(int(lab.max()) + 1 for lab in labels if lab.numel()))
+    scores = torch.zeros(G, P, dtype=torch.float64, device=Jr[0].device)
+    A = torch.zeros(P, P, dtype=torch.float64, device=Jr[0].device)
+    for i, (j, m, o, lab) in enumerate(zip(Jr, residual_preds, problem.observations, labels)):
+        s = o.sigma[o.mask] * phys_noise_scale(problem, phys, i)
+        r = problem.loss.residuals(m, o.values[o.mask], s).to(torch.float64) * _uncensored(problem, i, m)
+        scores.index_add_(0, lab.to(scores.device), (j * r.unsqueeze(-1)).sum(1))  # one score per sample, then per cluster
+        jf = j.reshape(-1, P)
+        A = A + jf.T @ jf
+    used = scores.abs().sum(-1) > 0
+    g = int(used.sum())
+    A_inv = _pinv_sym(A)
+    V = A_inv @ (scores.T @ scores) @ A_inv * (g / max(g - 1, 1))
+    return 0.5 * (V + V.T), A_inv
+
+
+def psd_part(M: Tensor) -> Tensor:
+    """The positive semi-definite part of a symmetric matrix (negative eigenvalues set to zero), (P, P)."""
+    ev, U = torch.linalg.eigh(0.5 * (M + M.T))
+    return (U * ev.clamp_min(0.0)) @ U.T
+
+
+def loewner_upper(C1: Tensor, C2: Tensor) -> Tensor:
+    """A minimal upper bound of two covariances in the Loewner order, C1 positive definite, (P, P).
+
+    With L L^T = C1 and L^-1 C2 L^-T = U diag(lam) U^T: L U diag(max(lam, 1)) U^T L^T. It is >= C1 and >= C2,
+    equals the larger where one contains the other, and its ellipsoid is the smallest coaxial one (axes of
+    the joint diagonalisation) holding both; the same when C1 and C2 swap. Each diagonal element is at
+    least the larger of the two."""
+    L = torch.linalg.cholesky(0.5 * (C1 + C1.T))
+    M = torch.linalg.solve_triangular(L, torch.linalg.solve_triangular(L, C2, upper=False).T, upper=False)
+    lam, U = torch.linalg.eigh(0.5 * (M + M.T))
+    B = L @ U
+    out = (B * lam.clamp_min(1.0)) @ B.T
+    return 0.5 * (out + out.T)
+
+
+@dataclasses.dataclass
+class NumericalTerm:
+    """Term 1 of one fit at its x (:func:`numerical_term`); several :func:`error_budget` calls can share it
+    (e.g. to compare discrepancy models without re-rendering the reference).
+
+    Attributes:
+        dx: the shift of x by refitting with the reference, shape (P,), float64. [x units]
+        tail: what an unconverged refit has still to go, shape (P,), float64. [x units]
+        m_cor: the numerically corrected model at x + dx, censored, list of (N_i, C_i). [data units]
+        budget: its entries of ``budget`` (reference, model_difference, method, nonlinearity, refit_steps_in_sigma,
+            numerical_shift_newton, numerical_tail).
+        jacobian: :func:`prediction_jacobian` at x, filled by the first :func:`error_budget` that needs it.
+    """
+
+    dx: Tensor
+    tail: Tensor
+    m_cor: list
+    budget: dict
+    jacobian: list | None = None
+
+
+def numerical_term(problem: FitProblem, x: Tensor, lap: dict, *, reference: SkyModel | None = None, numerical: bool = True,
+                   refits: int = 0, options: FitOptions | None = None) -> NumericalTerm:
+    """The numerical shift of the fit at x (module docstring, term 1; arguments as :func:`error_budget`'s);
+    ``numerical`` False: no shift, the corrected model is the fit's."""
     x = x.detach()
-    lap = laplace_summary(problem, x) if lap is None else lap
     names = display_names(problem)
     cov_noise = torch.as_tensor(lap["covariance_unconstrained"], dtype=torch.float64)
-    pd = bool(lap.get("positive_definite", True))
     P = x.numel()
-    phys = {k: v.detach() for k, v in problem.param.to_physical(x).items()}
     budget: dict = {"reference": None, "model_difference": None}
     dx = torch.zeros(P, dtype=torch.float64)
     tail = torch.zeros(P, dtype=torch.float64)
@@ -389,36 +528,99 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
             lagged = copy.copy(problem)
             lagged.frozen_factor = rs["factor"]
     with torch.no_grad():
-        m_fit = problem.predict(x)
         if lagged is not None:  # the refit's own model: m_fit c_k
             m_cor = lagged.predict(x + dx.to(x.dtype))
         else:
-            m_cor = problem.predict(x + dx.to(x.dtype)) if numerical else m_fit
+            m_cor = problem.predict(x + dx.to(x.dtype)) if numerical else problem.predict(x)
     if delta is not None and lagged is None:
         m_cor = [m + d for m, d in zip(m_cor, delta)]
     m_cor = [problem.censor(m, i) for i, m in enumerate(m_cor)]
+    return NumericalTerm(dx, tail, m_cor, budget)
+
+
+def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, reference: SkyModel | None = None,
+                 numerical: bool = True, floor: bool = True, refits: int = 0, options: FitOptions | None = None,
+                 discrepancy: str = DISCREPANCY_DEFAULT, clusters: int = CLUSTERS, min_count: int = MIN_PER_CLUSTER,
+                 term: NumericalTerm | None = None) -> dict:
+    """The Laplace summary with the total sigma (noise + numerical + discrepancy) and its breakdown.
+
+    Args:
+        problem: the fit problem; x: the fitted unconstrained vector, shape (P,).
+        lap: :func:`skyfit.fit.laplace.laplace_summary` at x (computed when None).
+        reference: the converged renderer (default :meth:`ReferenceModel.of` the fit's).
+        numerical: include the numerical term.
+        floor: include the discrepancy term (of the model ``discrepancy``).
+        refits: 0: the numerical shift is one Newton step; N > 0: up to N lagged refits with the
+            reference's factor (:func:`refit_shift`; for shifts too large for the linearisation).
+        options: the refits' optimiser options (default 1 start, 100 L-BFGS iterations).
+        discrepancy: ``floor``, ``sandwich`` or ``larger`` (:data:`DISCREPANCY_MODELS`, module docstring).
+        clusters, min_count: the sandwich's clusters per observation and fewest samples per cluster (:func:`sky_clusters`).
+        term: :func:`numerical_term` of this problem, x and lap computed before (``reference``, ``numerical``,
+            ``refits`` and ``options`` are then not used).
+
+    Returns:
+        ``lap``'s keys with ``sigma``, ``interval68``, ``interval95``, ``covariance``, ``correlation``,
+        ``derived`` of the total covariance, ``sigma_mode`` "total", ``sigma_noise`` (the Laplace sigma)
+        and ``budget``: ``sigma_noise``, ``sigma_numerical``, ``sigma_discrepancy`` (name -> [SI]; the chosen
+        model's), ``sigma_discrepancy_floor`` and ``sigma_discrepancy_sandwich`` (each model's, where computed),
+        ``discrepancy`` (``model``, and for the sandwich ``clusters`` G, ``min_per_cluster`` and the
+        ``cluster_sizes`` range in samples), ``numerical_shift`` (name -> physical value after the Newton step
+        minus the fitted one [SI]), ``derived`` (the same for derived quantities), ``floor_relative`` f [1]
+        and its range ``floor_relative_68`` (chi^2 at dof -+ sqrt(2 dof)), ``chi2_per_dof`` (at the fit),
+        ``chi2_per_dof_corrected`` (after the numerical correction), ``dof``, ``reference`` (the converged
+        renderer's settings), ``model_difference`` (rms of delta / m and delta / sigma), ``seconds``.
+    """
+    if discrepancy not in DISCREPANCY_MODELS:
+        raise FitError(f"discrepancy must be one of {', '.join(DISCREPANCY_MODELS)}, got {discrepancy!r}")
+    t0 = time.perf_counter()
+    x = x.detach()
+    lap = laplace_summary(problem, x) if lap is None else lap
+    names = display_names(problem)
+    cov_noise = torch.as_tensor(lap["covariance_unconstrained"], dtype=torch.float64)
+    pd = bool(lap.get("positive_definite", True))
+    P = x.numel()
+    phys = {k: v.detach() for k, v in problem.param.to_physical(x).items()}
+    if term is None:
+        term = numerical_term(problem, x, lap, reference=reference, numerical=numerical, refits=refits, options=options)
+    budget: dict = copy.deepcopy(term.budget)
+    dx, tail, m_cor = term.dx, term.tail, term.m_cor
+    with torch.no_grad():
+        m_fit = problem.predict(x)
     m_fit_c = [problem.censor(m, i) for i, m in enumerate(m_fit)]
     c_fit, n_used = chi2_with_floor(problem, m_fit_c, 0.0, phys)
     c_cor, _ = chi2_with_floor(problem, m_cor, 0.0, phys)
     dof = max(n_used - P, 1)
     budget.update(chi2_per_dof=c_fit / dof, chi2_per_dof_corrected=c_cor / dof, dof=dof)
-    f, f_range, cov_infl = 0.0, [0.0, 0.0], cov_noise
+    f, f_range = 0.0, [0.0, 0.0]
+    zero = torch.zeros(P, P, dtype=torch.float64)
+    shares: dict[str, Tensor] = {}  # discrepancy model -> its covariance share D (P, P)
     applicable = problem.loss.rho == "squared" and problem.loss.residual in ("linear", "log")
+    budget["discrepancy"] = {"model": discrepancy if floor and applicable else None}
     if floor and applicable:
         f = fit_floor(problem, m_cor, dof, phys)
         spread = math.sqrt(2.0 * dof)
         f_range = [fit_floor(problem, m_cor, dof, phys, dof + spread), fit_floor(problem, m_cor, dof, phys, dof - spread)]
-        if f > 0:  # the discrepancy's share: Gauss-Newton covariance with sigma' minus that with sigma (PSD,
-            # where the full Hessian with sigma' need not be: x* is not the optimum of the inflated problem)
-            jac = prediction_jacobian(problem, x)
-            extra = gauss_newton_covariance(problem, jac, m_fit, f, phys) - gauss_newton_covariance(problem, jac, m_fit, 0.0, phys)
-            ev, U = torch.linalg.eigh(0.5 * (extra + extra.T))
-            cov_infl = cov_noise + (U * ev.clamp_min(0.0)) @ U.T
+        if f > 0 or discrepancy != "floor":
+            if term.jacobian is None:
+                term.jacobian = prediction_jacobian(problem, x)
+            jac = term.jacobian
+            labels = sky_clusters(problem, phys, clusters, min_count)
+            V, A_inv = sandwich_covariance(problem, jac, m_fit, m_cor, labels, phys)
+            shares["sandwich"] = psd_part(V - A_inv)
+            # the floor's share: Gauss-Newton covariance with sigma' minus that with sigma (PSD, where the full
+            # Hessian with sigma' need not be: x* is not the optimum of the inflated problem)
+            shares["floor"] = psd_part(gauss_newton_covariance(problem, jac, m_fit, f, phys) - A_inv) if f > 0 else zero
+            sizes = torch.bincount(torch.cat(labels))
+            budget["discrepancy"].update(clusters=int(sizes.numel()), min_per_cluster=int(min_count),
+                                         cluster_sizes=[int(sizes.min()), int(sizes.max())])
+            if discrepancy == "larger":
+                shares["larger"] = psd_part(loewner_upper(A_inv + shares["floor"], A_inv + shares["sandwich"]) - A_inv)
     budget["floor_relative"] = f if applicable else None
     budget["floor_relative_68"] = f_range if applicable else None
     if floor and not applicable:
         budget["floor_note"] = f"no floor for the {problem.loss.name} loss (it needs rho squared on a linear or log residual)"
-    cov_total = cov_infl + torch.outer(dx, dx) + torch.outer(tail, tail)
+    share = shares.get(discrepancy, zero)
+    cov_total = cov_noise + share + torch.outer(dx, dx) + torch.outer(tail, tail)
     out = {**lap, **covariance_summary(problem, x, cov_total, pd)}
     out["positive_definite"] = pd
     out["sigma_mode"] = "total"
@@ -426,12 +628,15 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
     out["covariance_noise"] = lap["covariance"]
     J = transform_jacobian(problem, x.to(torch.float64))
     s_num = J.abs() * torch.sqrt(dx**2 + tail**2)
-    s_dis = torch.sqrt(torch.clamp_min(torch.diagonal(cov_infl) - torch.diagonal(cov_noise), 0.0)) * J.abs()
     v0 = physical_slot_values(problem, x.to(torch.float64))
     v1 = physical_slot_values(problem, x.to(torch.float64) + dx)
     budget["sigma_noise"] = lap["sigma"]
     budget["sigma_numerical"] = {n: float(s) for n, s in zip(names, s_num)}
-    budget["sigma_discrepancy"] = {n: float(s) for n, s in zip(names, s_dis)}
+    budget["sigma_discrepancy"] = {n: float(s) for n, s in zip(names, torch.sqrt(torch.diagonal(share).clamp_min(0.0)) * J.abs())}
+    for model in ("floor", "sandwich"):
+        if model in shares:
+            budget[f"sigma_discrepancy_{model}"] = {n: float(s) for n, s in zip(
+                names, torch.sqrt(torch.diagonal(shares[model]).clamp_min(0.0)) * J.abs())}
     budget["numerical_shift"] = {n: float(b - a) for n, a, b in zip(names, v0, v1)}
     derived = {}
     for name, fn in derived_functions(problem).items():
@@ -441,8 +646,11 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
         with torch.no_grad():
             shifted = float(fn(x.to(torch.float64) + dx))
         derived[name] = {"sigma_noise": lap["derived"][name]["sigma"], "sigma_numerical": abs(float(g @ dx)),
-                         "sigma_discrepancy": math.sqrt(max(float(g @ (cov_infl - cov_noise) @ g), 0.0)),
+                         "sigma_discrepancy": math.sqrt(max(float(g @ share @ g), 0.0)),
                          "numerical_shift": shifted - float(val.detach())}
+        for model in ("floor", "sandwich"):
+            if model in shares:
+                derived[name][f"sigma_discrepancy_{model}"] = math.sqrt(max(float(g @ shares[model] @ g), 0.0))
     budget["derived"] = derived
     budget["seconds"] = time.perf_counter() - t0
     out["budget"] = budget
@@ -451,12 +659,16 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
 
 
 def uncertainty(problem: FitProblem, x: Tensor, sigma: str = "total", reference: SkyModel | None = None,
-                refits: int = 0, options: FitOptions | None = None) -> dict:
-    """RESULT.json's ``laplace``: :func:`error_budget` for ``sigma="total"``, the noise-only Laplace summary
-    (``sigma_mode`` "noise") for ``"noise"``."""
+                refits: int = 0, options: FitOptions | None = None, discrepancy: str = DISCREPANCY_DEFAULT,
+                clusters: int = CLUSTERS) -> dict:
+    """RESULT.json's ``laplace``: :func:`error_budget` (with the ``discrepancy`` model and ``clusters``) for
+    ``sigma="total"``, the noise-only Laplace summary (``sigma_mode`` "noise") for ``"noise"``."""
     if sigma not in SIGMA_MODES:
         raise FitError(f"sigma must be one of {', '.join(SIGMA_MODES)}, got {sigma!r}")
+    if discrepancy not in DISCREPANCY_MODELS:
+        raise FitError(f"discrepancy must be one of {', '.join(DISCREPANCY_MODELS)}, got {discrepancy!r}")
     lap = laplace_summary(problem, x)
     if sigma == "noise" or not lap.get("positive_definite", True):
         return {**lap, "sigma_mode": "noise"}
-    return error_budget(problem, x, lap, reference=reference, refits=refits, options=options)
+    return error_budget(problem, x, lap, reference=reference, refits=refits, options=options, discrepancy=discrepancy,
+                        clusters=clusters)

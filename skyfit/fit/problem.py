@@ -22,6 +22,7 @@ from ..atmosphere.wavelengths import DEFAULT_WAVELENGTHS, parse_wavelengths
 from ..atmosphere.config import RUN_SECTIONS
 from ..render.auto import fit_overrides
 from ..transmittance import integrator_from_spec
+from .budget import CLUSTERS, DISCREPANCY_DEFAULT, DISCREPANCY_MODELS, SIGMA_MODES
 from .data import Observation, check_noise_model, expand_data_paths, noise_sigma, observation_from_exr, observation_from_kider
 from .losses import Loss, make_loss
 from .model import FitProblem, SkyModel
@@ -91,6 +92,11 @@ class FitSettings:
     sigma_refits: int = 3
     """The numerical term: lagged refits with the reference (at most this many) where the Newton step is
     not linear (skyfit.fit.budget.NONLINEAR); 0: always the Newton step."""
+    sigma_discrepancy: str = DISCREPANCY_DEFAULT
+    """The discrepancy term's model: ``floor`` (a white relative error floor), ``sandwich`` (cluster-robust over
+    sky regions) or ``larger`` (an upper bound of both); skyfit.fit.budget, docs/uncertainty.md."""
+    sigma_clusters: int = CLUSTERS
+    """The sandwich's target number of sky-region clusters per observation (skyfit.fit.budget.sky_clusters)."""
     accuracy: str | None = None
     """``auto`` (= ``noise``: relative model error <= 1/3 of the data's median relative sigma), ``de=X`` or
     ``rel=X``: replaces integrator, view_samples, rule (and the multiple-scattering fields for orders >= 2)
@@ -125,12 +131,13 @@ SETTING_RANGES: dict[str, tuple[str, float, float, str]] = {
     "min_elevation_deg": ("float", -90, 90, "[)"), "sun_mask_deg": ("float", 0, 180, "[)"),
     "saturation": ("float", 0, _INF, "()"), "sigma_relative": ("float", 0, _INF, "[)"),
     "bin_nm": ("float", 0, _INF, "()"), "select_heldout": ("float", 0, 1, "[)"), "sigma_refits": ("int", 0, _INF, "[)"),
+    "sigma_clusters": ("int", 2, _INF, "[)"),
 }
 """Type and range of the numeric fit settings, checked with the setting's name and where it came from
 before any work (docs/reliability.md)."""
 _CHOICES = {"multiple": ("hillaire", "bruneton", "bruneton_lagged"), "select_sigma": ("scaled", "known"), "dtype": tuple(DTYPES),
             "optimiser": METHODS,
-            "sigma": ("total", "noise")}
+            "sigma": SIGMA_MODES, "sigma_discrepancy": DISCREPANCY_MODELS}
 _STRINGS = ("loss", "integrator", "rule", "wavelengths", "accuracy")
 
 

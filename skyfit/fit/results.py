@@ -17,7 +17,7 @@ import torch
 
 from ..atmosphere import Atmosphere
 from ..transmittance import integrator_from_spec
-from .budget import ReferenceModel, uncertainty
+from .budget import CLUSTERS, DISCREPANCY_DEFAULT, ReferenceModel, uncertainty
 from .model import FitProblem, SkyModel
 from .optimise import FitOptions, OptimiseResult
 from .parameters import PARAMETERS, FitError, Parameterisation
@@ -32,8 +32,8 @@ def result_dict(problem: FitProblem, res: OptimiseResult, *, command: str, setti
                 config_source: str, base_dist: float, dtype: str, seconds: float, laplace: bool = False,
                 extra: dict | None = None) -> dict:
     """RESULT.json's content for a finished fit (CONTRACT.md), with the Laplace covariance when asked: its
-    ``sigma`` is the total of noise, numerical model error and discrepancy unless ``settings["sigma"]`` is
-    ``"noise"`` (:func:`skyfit.fit.budget.uncertainty`)."""
+    ``sigma`` is the total of noise, numerical model error and discrepancy (of the model
+    ``settings["sigma_discrepancy"]``) unless ``settings["sigma"]`` is ``"noise"`` (:func:`skyfit.fit.budget.uncertainty`)."""
     param, model = problem.param, problem.model
     phys = param.to_physical(res.x)
     result = {
@@ -65,7 +65,9 @@ def result_dict(problem: FitProblem, res: OptimiseResult, *, command: str, setti
                                         reference=None if ref is None else ReferenceModel.of(
                                             problem.model, tables=tuple(ref[:4]), orders=int(ref[4])),
                                         refits=int(st.get("sigma_refits", 0) or 0),
-                                        options=FitOptions(starts=1, adam_steps=0, max_iter=int(st.get("max_iter", 100))))
+                                        options=FitOptions(starts=1, adam_steps=0, max_iter=int(st.get("max_iter", 100))),
+                                        discrepancy=st.get("sigma_discrepancy") or DISCREPANCY_DEFAULT,
+                                        clusters=int(st.get("sigma_clusters") or CLUSTERS))
     return result
 
 
