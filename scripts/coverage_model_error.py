@@ -19,6 +19,12 @@ Laplace sigma of the noise and the total sigma of skyfit.fit.budget. Coverage = 
 skies whose 68 % / 95 % interval (Gaussian in the unconstrained parameter, mapped to physical
 units) holds the truth, with its binomial error sqrt(p (1 - p) / n) at the nominal p.
 
+``--compare`` adds other discrepancy models of skyfit.fit.budget beside the default total, from the
+same fit and numerical term (e.g. ``sandwich:12`` = the jackknife sandwich over 12 sky regions,
+``sandwich:24:cr1``, ``larger:12``): columns ``in68_<name>``, ``in95_<name>``, ``z_<name>``. Besides the
+parameters, ``mie_g_forward_lobe`` scores the same fitted g against the forward lobe g1 of the truth
+(= g on HG skies): on a two-term sky the asymmetry parameter is not what a one-term fit estimates.
+
     OMP_NUM_THREADS=1 nohup .venv/bin/python scripts/coverage_model_error.py --skies 20 \\
         --out docs/uncertainty/coverage_model_error.json > coverage.log 2>&1 &
 
@@ -41,7 +47,7 @@ import torch
 from skyfit.atmosphere import atmosphere_from_config, load_yaml
 from skyfit.camera import FisheyeCamera
 from skyfit.fit import FitOptions, FitProblem, Observation, Parameterisation, fit, make_loss
-from skyfit.fit.budget import ReferenceModel, error_budget
+from skyfit.fit.budget import DISCREPANCY_MODELS, SANDWICH_FORMS, ReferenceModel, error_budget, numerical_term
 from skyfit.fit.data import noise_sigma
 from skyfit.fit.laplace import laplace_summary
 from skyfit.fit.problem import fit_settings, prepare
@@ -50,6 +56,8 @@ from skyfit.transmittance import make_integrator
 CONFIGS = Path(__file__).resolve().parents[1] / "skyfit" / "configs"
 FREE = ["rayleigh_scale", "mie_beta_550", "mie_angstrom_alpha", "mie_scale_height", "mie_g", "ground_albedo"]
 REPORTED = FREE + ["mie_aod_550"]
+SIDE = {"mie_g_forward_lobe": "mie_g"}
+"""Scored but not pooled into "all": name -> the fitted parameter it scores (its truth: the truth's g1)."""
 NOISE = (0.01, 0.005)
 FIT = {"orders": 2, "multiple": "hillaire", "integrator": "chapman", "view_samples": 16, "rule": "gauss", "starts": 1,
        "sun_mask_deg": 3.0, "min_elevation_deg": 2.0, "max_iter": 200}
@@ -138,10 +146,27 @@ def derived_interval(d: dict, z: float):
     return [d["value"] - z * d["sigma"], d["value"] + z * d["sigma"]]
 
 
+def variants(spec: str) -> dict[str, dict]:
+    """``--compare`` "MODEL[:G[:FORM]],..." -> name -> error_budget keywords."""
+    out = {}
+    for item in filter(None, (v.strip() for v in spec.split(","))):
+        parts = item.split(":")
+        if parts[0] not in DISCREPANCY_MODELS or len(parts) > 3 or (len(parts) == 3 and parts[2] not in SANDWICH_FORMS):
+            raise SystemExit(f"--compare: {item!r} is not MODEL[:G[:FORM]] with MODEL in {DISCREPANCY_MODELS}, FORM in {SANDWICH_FORMS}")
+        kw = {"discrepancy": parts[0]}
+        if len(parts) > 1:
+            kw["clusters"] = int(parts[1])
+        if len(parts) > 2:
+            kw["sandwich_form"] = parts[2]
+        out[item.replace(":", "_")] = kw
+    return out
+
+
 def one_sky(k: int, args) -> dict:
     rng = np.random.default_rng([args.seed, k])
     two_term = k % 2 == 1
     t = draw_truth(rng, two_term)
+    t["mie_g_forward_lobe"] = t["g1"]
     obs, info = observe(t, args, rng)
     cfg = fit_config()
     prep = prepare([obs], cfg, fit_settings(cfg["fit"]))
@@ -151,69 +176,76 @@ def one_sky(k: int, args) -> dict:
     c_fit = time.process_time() - c0
     c0 = time.process_time()
     lap = laplace_summary(problem, res.x)
-    tot = error_budget(problem, res.x, lap, refits=args.refits,
-                       options=FitOptions(starts=1, adam_steps=0, max_iter=FIT["max_iter"]))
+    term = numerical_term(problem, res.x, lap, refits=args.refits,
+                          options=FitOptions(starts=1, adam_steps=0, max_iter=FIT["max_iter"]))
+    sigmas = {"total": error_budget(problem, res.x, lap, term=term)}
+    for name, kw in variants(args.compare).items():
+        sigmas[name] = error_budget(problem, res.x, lap, term=term, **kw)
+    tot = sigmas["total"]
     c_unc = time.process_time() - c0
-    row = {"sky": k, "two_term_hg": two_term, "truth": t, "fitted": {}, "z_noise": {}, "z_total": {},
-           "in68_noise": {}, "in95_noise": {}, "in68_total": {}, "in95_total": {},
+    row = {"sky": k, "two_term_hg": two_term, "truth": t, "fitted": {}, "z_noise": {}, "in68_noise": {}, "in95_noise": {},
            "budget": {kk: tot["budget"].get(kk) for kk in ("chi2_per_dof", "chi2_per_dof_corrected", "floor_relative",
                                                         "floor_relative_68", "model_difference", "sigma_noise", "method", "nonlinearity",
                                                         "refit_steps_in_sigma", "numerical_tail", "numerical_shift_newton",
                                                         "sigma_numerical", "sigma_discrepancy", "numerical_shift")},
+           "discrepancy": {name: {kk: b["budget"].get(kk) for kk in ("discrepancy", "sigma_discrepancy")}
+                           for name, b in sigmas.items()},
            "convergence": res.convergence["reason"], "loss": res.loss,
            "cpu_s": {"truth_render": info["truth_render_cpu_s"], "fit": c_fit, "uncertainty": c_unc},
            "n_samples": info["n_samples"]}
+    for name in sigmas:
+        row[f"z_{name}"], row[f"in68_{name}"], row[f"in95_{name}"] = {}, {}, {}
     z68, z95 = 0.9944578832097535, 1.959963984540054
-    for n in REPORTED:
-        if n in FREE:
-            v = res.parameters[n]
-            s_n, s_t = lap["sigma"][n], tot["sigma"][n]
-            i68n, i95n, i68t, i95t = lap["interval68"][n], lap["interval95"][n], tot["interval68"][n], tot["interval95"][n]
-        else:
-            v = lap["derived"][n]["value"]
-            s_n, s_t = lap["derived"][n]["sigma"], tot["derived"][n]["sigma"]
-            i68n, i95n = derived_interval(lap["derived"][n], z68), derived_interval(lap["derived"][n], z95)
-            i68t, i95t = derived_interval(tot["derived"][n], z68), derived_interval(tot["derived"][n], z95)
+    for n in REPORTED + list(SIDE):
+        p = SIDE.get(n, n)
         tv = t[n]
-        row["fitted"][n] = v
-        row["z_noise"][n] = None if not s_n else (v - tv) / s_n
-        row["z_total"][n] = None if not s_t else (v - tv) / s_t
-        row["in68_noise"][n], row["in95_noise"][n] = inside(i68n, tv), inside(i95n, tv)
-        row["in68_total"][n], row["in95_total"][n] = inside(i68t, tv), inside(i95t, tv)
+        for name, b in [("noise", lap), *sigmas.items()]:
+            if p in FREE:
+                v, s_, i68, i95 = res.parameters[p], b["sigma"][p], b["interval68"][p], b["interval95"][p]
+            else:
+                v, s_ = b["derived"][p]["value"], b["derived"][p]["sigma"]
+                i68, i95 = derived_interval(b["derived"][p], z68), derived_interval(b["derived"][p], z95)
+            row["fitted"][n] = v
+            row[f"z_{name}"][n] = None if not s_ else (v - tv) / s_
+            row[f"in68_{name}"][n], row[f"in95_{name}"][n] = inside(i68, tv), inside(i95, tv)
     return row
+
+
+def sigma_names(rows: list[dict]) -> list[str]:
+    """The sigmas scored in ``rows``: noise, total and the ``--compare`` variants, in their order."""
+    return [k[len("in68_"):] for k in rows[0] if k.startswith("in68_")] if rows else ["noise", "total"]
 
 
 def table(rows: list[dict]) -> dict:
     n = len(rows)
     out = {"n_skies": n, "binomial_error_68": math.sqrt(0.68 * 0.32 / max(n, 1)),
            "binomial_error_95": math.sqrt(0.95 * 0.05 / max(n, 1)), "parameters": {}}
-    for p in REPORTED + ["all"]:
+    for p in REPORTED + ["all"] + list(SIDE):
         names = REPORTED if p == "all" else [p]
         d = {}
-        for key in ("in68_noise", "in95_noise", "in68_total", "in95_total"):
-            hits = [r[key][q] for r in rows for q in names]
-            d[key.replace("in", "coverage")] = sum(hits) / max(len(hits), 1)
-        zs = [r["z_total"][q] for r in rows for q in names if r["z_total"][q] is not None]
-        zn = [r["z_noise"][q] for r in rows for q in names if r["z_noise"][q] is not None]
-        d["rms_z_total"] = math.sqrt(sum(z * z for z in zs) / max(len(zs), 1))
-        d["rms_z_noise"] = math.sqrt(sum(z * z for z in zn) / max(len(zn), 1))
-        d["n"] = len(zs)
+        for sig in sigma_names(rows):
+            for level in ("68", "95"):
+                hits = [r[f"in{level}_{sig}"][q] for r in rows for q in names if q in r[f"in{level}_{sig}"]]
+                d[f"coverage{level}_{sig}"] = sum(hits) / max(len(hits), 1)
+            zs = [r[f"z_{sig}"][q] for r in rows for q in names if r[f"z_{sig}"].get(q) is not None]
+            d[f"rms_z_{sig}"] = math.sqrt(sum(z * z for z in zs) / max(len(zs), 1))
+            d["n"] = len(zs)
         out["parameters"][p] = d
     return out
 
 
 def markdown(doc: dict) -> str:
-    """The coverage tables of a merged run as markdown (docs/uncertainty.md)."""
+    """The coverage tables of a merged run as markdown (docs/uncertainty.md): 68 / 95 % coverage and RMS z per sigma."""
     lines = []
     for key, title in (("table", "all skies"), ("table_hg", "HG truth"), ("table_two_term", "two-term HG truth")):
         t = doc[key]
+        sigs = [k[len("coverage68_"):] for k in next(iter(t["parameters"].values())) if k.startswith("coverage68_")]
         lines += [f"{title}: n = {t['n_skies']} skies (binomial error {t['binomial_error_68']:.3f} at 68 %, "
-                  f"{t['binomial_error_95']:.3f} at 95 %)", "",
-                  "| parameter | 68 % noise σ | 95 % noise σ | 68 % total σ | 95 % total σ | RMS z noise | RMS z total |",
-                  "|---|---|---|---|---|---|---|"]
+                  f"{t['binomial_error_95']:.3f} at 95 %); 68 / 95 % coverage (RMS z)", "",
+                  "| parameter | " + " | ".join(f"{s} σ" for s in sigs) + " |", "|---" * (len(sigs) + 1) + "|"]
         for p, d in t["parameters"].items():
-            lines.append(f"| {p} | {d['coverage68_noise']:.2f} | {d['coverage95_noise']:.2f} | {d['coverage68_total']:.2f} | "
-                         f"{d['coverage95_total']:.2f} | {d['rms_z_noise']:.1f} | {d['rms_z_total']:.2f} |")
+            lines.append(f"| {p} | " + " | ".join(f"{d['coverage68_' + s]:.2f} / {d['coverage95_' + s]:.2f} ({d['rms_z_' + s]:.2f})"
+                                                 for s in sigs) + " |")
         lines.append("")
     return "\n".join(lines)
 
@@ -229,6 +261,8 @@ def main(argv=None) -> int:
     ap.add_argument("--truth-tables", default="16,64,16,8", help="R,MU,MU_S,NU of the truth's Bruneton tables")
     ap.add_argument("--truth-orders", type=int, default=8)
     ap.add_argument("--refits", type=int, default=1, help="the budget's lagged refits (fit.sigma_refits)")
+    ap.add_argument("--compare", default="", help="other discrepancy models beside the default total, MODEL[:G[:FORM]],... "
+                    "(e.g. sandwich:12,sandwich:24:cr1,larger:12)")
     ap.add_argument("--part", default="0/1", help="K/N: run only the skies k with k % N == K (N processes side by side)")
     ap.add_argument("--descending", action="store_true", help="run the part's skies from the last (a second process per part)")
     ap.add_argument("--merge", nargs="+", help="merge the JSON files of the parts into --out (no fitting)")
@@ -272,10 +306,11 @@ def main(argv=None) -> int:
         all_ = summ["parameters"]["all"]
         print(f"sky {k + 1}/{args.skies} ({'two-term' if row['two_term_hg'] else 'HG'}, sun {row['truth']['sun_zenith_deg']:.0f} deg): "
               f"chi2/dof {row['budget']['chi2_per_dof']:.3g} -> {row['budget']['chi2_per_dof_corrected']:.3g}, floor "
-              f"{row['budget']['floor_relative']:.3g}; max |z| noise {max(abs(z) for z in row['z_noise'].values() if z is not None):.2f}, "
-              f"total {max(abs(z) for z in row['z_total'].values() if z is not None):.2f}; running coverage 68/95 noise "
-              f"{all_['coverage68_noise']:.2f}/{all_['coverage95_noise']:.2f}, total {all_['coverage68_total']:.2f}/"
-              f"{all_['coverage95_total']:.2f}; {row['wall_s']:.0f} s", flush=True)
+              f"{row['budget']['floor_relative']:.3g}; max |z| " + ", ".join(
+                  f"{sig} {max(abs(z) for z in row['z_' + sig].values() if z is not None):.2f}" for sig in sigma_names([row]))
+              + "; running coverage 68/95 " + ", ".join(
+                  f"{sig} {all_['coverage68_' + sig]:.2f}/{all_['coverage95_' + sig]:.2f}" for sig in sigma_names([row]))
+              + f"; {row['wall_s']:.0f} s", flush=True)
         doc = {"command": "scripts/coverage_model_error.py " + " ".join(sys.argv[1:] if argv is None else argv),
                "settings": vars(args), "fit": FIT, "free": FREE, "noise": NOISE, "table": summ, "skies": rows,
                "wall_s": time.perf_counter() - t_start}

@@ -113,7 +113,7 @@ def stage_fits(work: Path, v: str, only: list[str] | None) -> None:
                           "free": {k: res["parameters"][k] for k in res["free"]}}), flush=True)
 
 
-def stage_joint(work: Path, v: str) -> None:
+def stage_joint(work: Path, v: str, max_iter: int = 300) -> None:
     """One fit of the day: the atmosphere shared, exposure and heading per capture, warm-started at
     the per-capture fits (the atmosphere at their median)."""
     from skyfit.fit.parameters import PARAMETERS
@@ -125,7 +125,7 @@ def stage_joint(work: Path, v: str) -> None:
     cfg = variant_config(v)
     caps = _captures()
     fits = [work / f"{v}_{_short(c)}.json" for c in caps]
-    overrides: dict = {"max_iter": 300}
+    overrides: dict = {"max_iter": max_iter}
     if all(f.exists() for f in fits):
         per = [json.loads(f.read_text())["parameters"] for f in fits]
         overrides["initial"] = {n: ([p[n] for p in per] if PARAMETERS[n].nuisance else float(np.median([p[n] for p in per])))
@@ -138,8 +138,26 @@ def stage_joint(work: Path, v: str) -> None:
                       "per": [round(p["rmse"], 3) for p in res["metrics"]["per_observation"]]}), flush=True)
 
 
+def axis_heading(cap: Path) -> float:
+    """The scanner's heading in a capture from the data alone [rad]: the symmetry axis of rings 1 and 2 (mean)
+    minus the computed sun azimuth (skyfit.io.kider.ring_symmetry_azimuths; docs/data.md), the convention of
+    ``sun_azimuth_offset``."""
+    import math
+
+    from skyfit.io.kider import load_kider_capture, ring_symmetry_azimuths
+
+    c = load_kider_capture(cap)
+    axes = ring_symmetry_azimuths(c)
+    mean = math.atan2(float(np.sin(axes).mean()), float(np.cos(axes).mean()))
+    d = mean - float(c.sun_azimuth)
+    return math.atan2(math.sin(d), math.cos(d))
+
+
 def stage_cross(work: Path, v: str, sources: list[str]) -> None:
-    """Each source's fit predicts every other capture as is and with exposure and heading re-estimated."""
+    """Each source's fit predicts every other capture as is, with the heading measured on the target's own
+    symmetry axis (no fit: ``axis``), and with exposure and heading re-estimated."""
+    import tempfile
+
     from skyfit.fit.run import run_evaluate
 
     caps = _captures()
@@ -147,14 +165,21 @@ def stage_cross(work: Path, v: str, sources: list[str]) -> None:
         path = work / f"{v}_{src}.json"
         if not path.exists():
             raise SystemExit(f"{path} missing: run --stage fits first")
-        for mode in ("asis", "refit"):
+        for mode in ("asis", "axis", "refit"):
             out = work / f"{v}_cross_{src}_{mode}.json"
             done = json.loads(out.read_text()) if out.exists() else {}
             for cap in caps:
                 name = _short(cap)
                 if name == src or name in done:
                     continue
-                ev = run_evaluate(path, [cap], refit_nuisance=mode == "refit", refit=NUISANCE if mode == "refit" else None)
+                source = path
+                if mode == "axis":  # the source's atmosphere and exposure, the target's heading from its symmetry axis
+                    res = json.loads(path.read_text())
+                    res["parameters"]["sun_azimuth_offset"] = axis_heading(cap)
+                    tmp = Path(tempfile.mkdtemp()) / path.name
+                    tmp.write_text(json.dumps(res))
+                    source = tmp
+                ev = run_evaluate(source, [cap], refit_nuisance=mode == "refit", refit=NUISANCE if mode == "refit" else None)
                 done[name] = {"rmse": ev["rmse"], "delta_e": ev["delta_e"]}
                 out.write_text(json.dumps(done, indent=1))
             print(json.dumps({"variant": v, "source": src, "mode": mode,
@@ -191,7 +216,7 @@ def stage_report(work: Path, variants: list[str], orientation_work: Path) -> Non
         if jp.exists():
             j = json.loads(jp.read_text())
             entry["joint"] = {"rmse": j["metrics"]["rmse"], "per": [p["rmse"] for p in j["metrics"]["per_observation"]]}
-        for mode in ("asis", "refit"):
+        for mode in ("asis", "axis", "refit"):
             per_src = {}
             for f in work.glob(f"{v}_cross_*_{mode}.json"):
                 d = json.loads(f.read_text())
@@ -224,6 +249,7 @@ def stage_report(work: Path, variants: list[str], orientation_work: Path) -> Non
                         "{1:.2f} ({0})".format(*max(o.items(), key=lambda t: t[1])))
         print(f"| **{label}** | " + " | ".join(vals) + " |")
     for key, label in (("joint", "joint day fit"), ("cross_refit", "fit one, predict the others, exposure + heading re-estimated"),
+                       ("cross_axis", "fit one, predict the others, heading from the target's symmetry axis (no fit)"),
                        ("cross_asis", "fit one, predict the others, as is")):
         vals = []
         for v in cols:
@@ -241,6 +267,7 @@ def main() -> None:
     ap.add_argument("--work", default=str(ROOT / "docs" / "kider_instrument"))
     ap.add_argument("--orientation-work", default=str(ROOT / "docs" / "kider"), help="report: docs/kider.md (a)'s fits")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--joint-max-iter", type=int, default=300, help="joint: optimiser iterations")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     work = Path(args.work)
@@ -256,7 +283,7 @@ def main() -> None:
         if args.stage == "fits":
             stage_fits(work, v, only)
         elif args.stage == "joint":
-            stage_joint(work, v)
+            stage_joint(work, v, args.joint_max_iter)
         else:
             stage_cross(work, v, args.sources.split(","))
 

@@ -31,7 +31,7 @@ def circular_diff_deg(a: float, b: float) -> float:
 
 def check_case(folder: Path, diag: Path | None = None) -> dict:
     """The camera-from-image step of one case against its ``truth.json``."""
-    from skyfit.camera.autocal import cameras_from_sun, detect_circle, detect_sun
+    from skyfit.camera.autocal import cameras_from_sun, detect_circle, detect_sun, symmetry_axis
     from skyfit.camera.fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, zenith_azimuth_to_enu
     from skyfit.camera.sun import parse_location, parse_time, sun_position
     from skyfit.fit.photo import _disc, _luminance, projection_decision
@@ -44,9 +44,11 @@ def check_case(folder: Path, diag: Path | None = None) -> dict:
     sp = sun_position(parse_time(truth["time"]), lat, lon, elev)
     sz, sa = float(sp.zenith), float(sp.azimuth)
     h, w = photo.rgb.shape[:2]
-    circle = detect_circle(_luminance(np.where(np.isfinite(photo.rgb), photo.rgb, 0.0)), photo.valid)
+    lum = _luminance(np.where(np.isfinite(photo.rgb), photo.rgb, 0.0))
+    circle = detect_circle(lum, photo.valid)
     inside = _disc(h, w, circle.cx, circle.cy, circle.radius) & photo.valid
-    sun = detect_sun(photo.darkest, photo.darkest_saturated, inside)
+    axis = symmetry_axis(lum, circle.cx, circle.cy, circle.radius, photo.valid)
+    sun = detect_sun(photo.darkest, photo.darkest_saturated, inside, centre=(circle.cx, circle.cy), axis_deg=axis)
     cands = cameras_from_sun((h, w), circle, sun, sz, sa, projections=CLASSICAL_PROJECTIONS)
     seconds = time.perf_counter() - t0
     tc = truth["camera"]

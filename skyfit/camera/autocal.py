@@ -4,8 +4,10 @@ For an all-sky photo whose lens centre, radius, projection and heading are not k
 
 1. :func:`detect_circle` finds the image circle, the edge of the bright disc against the dark
    surround (Canny edges, a RANSAC circle, then a sub-pixel refinement along radial profiles).
-2. :func:`detect_sun` finds the sun's image in the darkest frame (the centroid of its saturated core,
-   or of a compact peak far above its surroundings).
+2. :func:`symmetry_axis` finds the sun's direction from the circle's centre as the sky's mirror axis (the sky
+   is symmetric about the sun's vertical), and :func:`detect_sun` the sun's image in the darkest frame (the
+   centroid of its saturated core, or of a compact peak far above its surroundings; on that axis, for a
+   saturated aureole cut by the horizon).
 3. :func:`cameras_from_sun` builds one :class:`~skyfit.camera.fisheye.FisheyeCamera` per projection
    with the centre and radius from the circle and the heading that puts the computed (SPA) sun on the
    detected one, ranked by how well each projection maps the sun's zenith angle to its image radius.
@@ -34,6 +36,7 @@ __all__ = [
     "detect_circle",
     "detect_sun",
     "heading_from_sun",
+    "symmetry_axis",
 ]
 
 
@@ -69,10 +72,12 @@ class SunDetection:
         radius_px: radius of the disc of the same area as the detected blob. [px]
         saturated: True when found as a saturated core, False as an unsaturated peak.
         n_pixels: pixels in the blob. [1]
-        extended: True when the saturated region is no disc (a single frame exposed for the sky saturates
-            the aureole, cut by the horizon or squeezed at the rim): x, y are then its deepest point (the
-            maximum of its distance transform), good for the sun's azimuth about the centre (the heading),
-            less so for its radius (the projection).
+        extended: True when the saturated region is no disc clear of the rim (a single frame exposed for the
+            sky saturates the aureole, merged with the bright horizon, cut by the rim or squeezed at it): x, y
+            are then on the sky's symmetry axis, the centre of the largest disc inside the region that touches
+            its end nearest the zenith (:func:`detect_sun`), or without an axis the region's deepest point.
+            Good for the sun's azimuth about the centre (the heading), within a few degrees for its radius
+            (the projection).
     """
 
     x: float
@@ -95,6 +100,10 @@ class CameraGuess:
             detected sun (no evidence: every projection tied).
         sun_model_px: (x, y) where ``camera`` puts the computed sun [px], None where outside its view.
         notes: what the guess assumed or could not determine, one line each.
+        tolerance_deg: how far above the best score this projection's may lie and still be the right one:
+            :data:`SUN_ZENITH_TOL_DEG` (the tilt), plus for an extended detection the zenith span of its
+            ``radius_px`` toward the centre under this projection (the sun lies between the aureole's edge
+            nearest the zenith and the detected point). NaN without a detected sun. [deg]
     """
 
     camera: FisheyeCamera
@@ -102,6 +111,7 @@ class CameraGuess:
     score: float
     sun_model_px: tuple[float, float] | None
     notes: list[str]
+    tolerance_deg: float = math.nan
 
 
 # ----------------------------------------------------------------------------------- circle
@@ -283,6 +293,72 @@ _LUMA = np.array([0.2126, 0.7152, 0.0722])
 EXTENDED_MIN_PX = 20
 """A saturated region that is no disc counts as the sun's aureole from this many pixels on."""
 
+SYMMETRY_MAX_RATIO = 0.3
+""":func:`symmetry_axis` accepts an axis whose median mirror difference of log luminance is under this
+fraction of the median over all axes (0.03-0.13 on the 20 photos of docs/photos.md, clear skies with
+skylines over up to a third of the horizon and tilts up to 2°; an overcast or cloudy sky has no axis). [1]"""
+
+
+def symmetry_axis(luminance: np.ndarray, cx: float, cy: float, radius: float, valid: np.ndarray | None = None, *,
+                  n_azimuths: int = 720, n_radii: int = 60) -> float | None:
+    """The image direction of the sun from the circle's centre, as the sky's mirror-symmetry axis.
+
+    A clear, horizontally uniform sky is symmetric about the vertical plane through the sun (the principal
+    plane): its radiance depends on the zenith angle and on the azimuth from the sun's only through
+    |azimuth difference|. An untilted fisheye maps that plane to a line through the circle's centre
+    whatever its projection, and vignetting is symmetric about the centre, so the image is mirror-symmetric
+    about that line. The log luminance is sampled on a polar grid (``n_azimuths`` directions, ``n_radii``
+    radii over 10-95 % of ``radius``; bilinear), the axis minimising the median |log L(phi + d) - log L(phi - d)|
+    over all d and radii wins (obstacles, a ghost and noise are outliers of the median), refined by a parabola
+    through its neighbours; of its two ends, the brighter (median log luminance along it) is the sun's. A tilt
+    of t degrees moves the axis by about t / sin(sun zenith) at most, as it moves the sun's image.
+
+    Args:
+        luminance: linear luminance (any linear brightness; saturated pixels at their clip value), shape (H, W).
+        cx, cy, radius: the image circle, image convention. [px]
+        valid: pixels that carry data, shape (H, W) bool (default: finite ones).
+        n_azimuths, n_radii: the polar grid.
+
+    Returns:
+        atan2(y - cy, x - cx) of the sun's half of the axis [deg, in [0, 360)], image convention (y down);
+        None where the sky has no clear mirror axis (median difference at the best axis over
+        :data:`SYMMETRY_MAX_RATIO` of the typical one: clouds, an overcast sky).
+    """
+    lum = _check_image(luminance, "luminance")
+    valid = np.isfinite(lum) if valid is None else (np.asarray(valid, dtype=bool) & np.isfinite(lum))
+    if valid.shape != lum.shape:
+        raise CalibrationError(f"valid mask shape {valid.shape} differs from the image's {lum.shape}")
+    if not (radius > 0 and valid.any()):
+        return None
+    top = float(np.percentile(lum[valid], 99))
+    if not top > 0:
+        return None
+    log_l = np.where(valid, np.log(np.maximum(lum, 1e-4 * top)), np.nan)
+    phi = np.linspace(0.0, 2 * np.pi, n_azimuths, endpoint=False)
+    radii = np.linspace(0.1, 0.95, n_radii) * radius
+    polar = _sample(log_l, cx + radii[None, :] * np.cos(phi)[:, None], cy + radii[None, :] * np.sin(phi)[:, None], 1)
+    d = np.arange(1, n_azimuths // 2)
+    k = np.arange(n_azimuths)[:, None]
+    with warnings.catch_warnings():  # all-NaN slices (a circle mostly outside the image) give NaN, handled below
+        warnings.simplefilter("ignore", RuntimeWarning)
+        diff = np.abs(polar[(k + d) % n_azimuths] - polar[(k - d) % n_azimuths])  # (axis, d, radius)
+        score = np.nanmedian(diff.reshape(n_azimuths, -1), axis=1)
+    if not np.isfinite(score).any():
+        return None
+    best = int(np.nanargmin(score))
+    typical = float(np.nanmedian(score))
+    if not score[best] < SYMMETRY_MAX_RATIO * typical:
+        return None
+    sm, s0, sp = score[(best - 1) % n_azimuths], score[best], score[(best + 1) % n_azimuths]
+    curv = sm - 2 * s0 + sp
+    off = 0.5 * (sm - sp) / curv if np.isfinite(curv) and curv > 0 else 0.0
+    axis = (best + float(np.clip(off, -0.5, 0.5))) * 360.0 / n_azimuths
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        if np.nanmedian(polar[(best + n_azimuths // 2) % n_azimuths]) > np.nanmedian(polar[best]):
+            axis += 180.0
+    return axis % 360.0
+
 
 def _compact(region, min_ratio: float = 0.2, min_solidity: float = 0.8) -> bool:
     """A blob is compact (disc-like): minor/major axis >= min_ratio and solidity >= min_solidity.
@@ -293,25 +369,69 @@ def _compact(region, min_ratio: float = 0.2, min_solidity: float = 0.8) -> bool:
     return region.axis_minor_length / major >= min_ratio and region.solidity >= min_solidity
 
 
-def detect_sun(darkest_rgb: np.ndarray, darkest_saturated: np.ndarray, inside: np.ndarray) -> SunDetection | None:
+def _sun_on_axis(blob: np.ndarray, inside: np.ndarray, cx: float, cy: float, axis_deg: float
+                 ) -> tuple[float, float, float] | None:
+    """The sun in a saturated aureole: on the symmetry axis, the centre of the largest disc inside the region
+    that touches the region's end nearest the centre (the zenith).
+
+    The region is where aureole(psi) + sky(x) exceeds the clip level; the sky brightens toward the horizon,
+    so the region reaches farthest from the sun there and least toward the zenith, and a disc around the sun
+    through that nearest end stays inside the region. Along the axis from that end the distance to the
+    region's edge (``scipy.ndimage.distance_transform_edt``; the rim and masked pixels are no edge: the
+    aureole goes on behind them; thin obstacles are bridged by a closing of 3 px) grows as fast as the
+    distance from the end while that end is the nearest edge point, i.e. up to the centre of the disc.
+
+    Returns:
+        (x, y, distance from the end) [px], or None where the axis misses the region.
+    """
+    import scipy.ndimage  # scipy loads with skimage.measure anyway
+
+    region = scipy.ndimage.binary_fill_holes(skimage.morphology.closing(blob, skimage.morphology.disk(3)) | blob)
+    depth = scipy.ndimage.distance_transform_edt(region | ~inside)
+    ux, uy = math.cos(math.radians(axis_deg)), math.sin(math.radians(axis_deg))
+    r = np.arange(0.0, math.hypot(*region.shape), 0.5)
+    on = _sample(region.astype(np.float64), cx + r * ux, cy + r * uy, 0) > 0.5
+    seen = _sample(inside.astype(np.float64), cx + r * ux, cy + r * uy, 0) > 0.5
+    if not (on & seen).any():
+        return None
+    a = int(np.argmax(on & seen))
+    dist = _sample(depth, cx + r * ux, cy + r * uy, 1)
+    k = a
+    while k + 1 < len(r) and seen[k + 1] and dist[k + 1] >= (r[k + 1] - r[a]) - 1.5:
+        k += 1
+    return cx + r[k] * ux, cy + r[k] * uy, float(r[k] - r[a])
+
+
+def detect_sun(darkest_rgb: np.ndarray, darkest_saturated: np.ndarray, inside: np.ndarray, *,
+               centre: tuple[float, float] | None = None, axis_deg: float | None = None) -> SunDetection | None:
     """The sun's image: centroid of its saturated core in the darkest frame, else of a compact peak.
 
-    Saturated path: the saturated pixels inside the circle are opened with a disc of radius 2 px
-    (``skimage.morphology``; removes blooming streaks and lines under 5 px wide), labelled
-    (``skimage.measure.label``), and the largest compact blob (minor/major axis >= 0.2, solidity >= 0.8;
-    not a long streak) of at least 3 pixels wins: lens-flare ghosts are smaller or unsaturated. Without
-    saturation: the brightest pixel of the luminance (Gaussian sigma = 1 px) if it stands at least 20x
-    above the median of an annulus around it (5-10 % of the circle's radius away) and the region above
-    half its height is compact and small; its centroid is weighted by the luminance above the annulus's.
+    Saturated path: the saturated pixels inside the circle, their holes filled (JPEG noise leaves single
+    codes under the clip level inside the sun's disc), are opened with a disc of radius 2 px
+    (``skimage.morphology``; removes blooming streaks and lines under 5 px wide) and labelled
+    (``skimage.measure.label``). The largest region is the sun's: lens-flare ghosts and bright bits of
+    sky between obstacles at the rim are smaller. A compact region (minor/major axis >= 0.2, solidity >= 0.8)
+    clear of the circle's rim is the sun's core: its centroid. Otherwise (from :data:`EXTENDED_MIN_PX` on)
+    it is the saturated aureole, merged with the bright horizon or cut by the rim, whose centroid lies
+    toward the horizon: with ``centre`` and ``axis_deg`` (:func:`symmetry_axis`) the sun is placed on the
+    axis (:func:`_sun_on_axis`), else at the region's deepest point; ``extended`` is set. A small region that
+    is no disc is looked for unopened. Without saturation: the brightest pixel of the luminance (Gaussian
+    sigma = 1 px) if it stands at least 20x above the median of an annulus around it (5-10 % of the circle's
+    radius away) and the region above half its height is compact and small; its centroid is weighted by the
+    luminance above the annulus's.
 
     Args:
         darkest_rgb: linear RGB of the shortest exposure, shape (H, W, 3). [any unit]
         darkest_saturated: saturated pixels of that frame, shape (H, W) or (H, W, 3) (any channel) bool.
         inside: pixels inside the fisheye circle (and not masked), shape (H, W) bool.
+        centre: (cx, cy) of the circle, image convention. [px]
+        axis_deg: direction of the sun from ``centre`` (:func:`symmetry_axis`), image convention. [deg]
 
     Returns:
         :class:`SunDetection`, or None when the sun is hidden (clouds, an obstacle, outside the view).
     """
+    import scipy.ndimage  # scipy loads with skimage.measure anyway
+
     rgb = np.asarray(darkest_rgb, dtype=np.float64)
     if rgb.ndim != 3 or rgb.shape[-1] != 3:
         raise CalibrationError(f"darkest_rgb must have shape (H, W, 3), got {rgb.shape}")
@@ -322,27 +442,31 @@ def detect_sun(darkest_rgb: np.ndarray, darkest_saturated: np.ndarray, inside: n
     if sat.shape != rgb.shape[:2] or inside.shape != rgb.shape[:2]:
         raise CalibrationError(f"saturated {sat.shape} and inside {inside.shape} masks must match the image "
                                f"{rgb.shape[:2]}")
-    sat = sat & inside
+    sat = scipy.ndimage.binary_fill_holes(sat & inside) & inside
     if sat.sum() >= 3:
         opened = skimage.morphology.opening(sat, skimage.morphology.disk(2))
         for mask in (opened, sat):  # a core under 5 px wide does not survive the opening: then the raw mask
             regions = [r for r in skimage.measure.regionprops(skimage.measure.label(mask, connectivity=2))
-                       if r.area >= 3 and _compact(r)]
-            if regions:
-                best = max(regions, key=lambda r: r.area)
-                y, x = best.centroid
-                return SunDetection(float(x), float(y), math.sqrt(best.area / math.pi), True, int(best.area))
-        # no disc: the largest saturated region, if large, is the sun's aureole; its deepest point
-        regions = skimage.measure.regionprops(skimage.measure.label(sat, connectivity=2))
-        best = max(regions, key=lambda r: r.area) if regions else None
-        if best is not None and best.area >= EXTENDED_MIN_PX:
+                       if r.area >= 3]
+            if not regions:
+                continue
+            best = max(regions, key=lambda r: r.area)
             blob = np.zeros_like(sat)
             blob[tuple(best.coords.T)] = True
-            import scipy.ndimage  # here: scipy loads in ~0.5 s, and only an extended sun needs it
-
-            depth = scipy.ndimage.distance_transform_edt(blob)
-            i0, j0 = np.unravel_index(np.argmax(depth), depth.shape)
-            return SunDetection(float(j0), float(i0), float(depth[i0, j0]), True, int(best.area), extended=True)
+            clipped = bool((skimage.morphology.dilation(blob, skimage.morphology.disk(2)) & ~inside).any())
+            if _compact(best) and (not clipped or best.area < EXTENDED_MIN_PX):
+                y, x = best.centroid
+                return SunDetection(float(x), float(y), math.sqrt(best.area / math.pi), True, int(best.area))
+            if best.area >= EXTENDED_MIN_PX:
+                on_axis = None
+                if centre is not None and axis_deg is not None:
+                    on_axis = _sun_on_axis(blob, inside, float(centre[0]), float(centre[1]), float(axis_deg))
+                if on_axis is None:  # the region's deepest point
+                    depth = scipy.ndimage.distance_transform_edt(blob)
+                    i0, j0 = np.unravel_index(np.argmax(depth), depth.shape)
+                    on_axis = (float(j0), float(i0), float(depth[i0, j0]))
+                x, y, rad = on_axis
+                return SunDetection(float(x), float(y), float(rad), True, int(best.area), extended=True)
     lum = np.where(inside, rgb @ _LUMA, 0.0)
     if not inside.any() or not np.isfinite(lum).all():
         return None
@@ -371,6 +495,16 @@ def detect_sun(darkest_rgb: np.ndarray, darkest_saturated: np.ndarray, inside: n
 
 
 # ---------------------------------------------------------------------------------- cameras
+SUN_ZENITH_TOL_DEG = 2.0
+"""Projections whose scores lie within this of the best cannot be told apart by the sun. [deg]
+
+The guesses are untilted, and a tilt of t degrees toward or away from the sun moves its zenith angle by t:
+2° covers a camera levelled by eye or with a bubble level (the photo study's tilts are 0-1.9°), the sun
+core's centroid (<= 0.5°) and the circle's radius (<= 1 px). Equidistant and equisolid differ by less than
+2.2° below 25° zenith and above 80°, and by at most 3.8° anywhere (normalised at 90°): the sun alone
+separates them only between about 30° and 75° zenith and a level camera."""
+
+
 def heading_from_sun(cx: float, cy: float, sun_x: float, sun_y: float, sun_azimuth_deg: float) -> float:
     """``up_azimuth_deg`` [deg, in [0, 360)] that puts azimuth ``sun_azimuth_deg`` on the ray from the centre
     (cx, cy) through the image point (sun_x, sun_y) [px], for an untilted camera.
@@ -441,7 +575,7 @@ def cameras_from_sun(
             continue
         rho_edge = float(theta_to_rho(torch.tensor(math.radians(max_zenith_deg), dtype=torch.float64), p))
         r90 = circle.radius / rho_edge
-        heading, score = 0.0, math.nan
+        heading, score, tol = 0.0, math.nan, math.nan
         if sun is None:
             notes.append("sun not detected: heading 0, projections tied; the heading must come from the sky pattern")
         else:
@@ -454,7 +588,14 @@ def cameras_from_sun(
             if math.isfinite(zen_img):
                 zen_img = math.degrees(zen_img)
                 score = abs(zen_img - sun_zenith_deg)
+                tol = SUN_ZENITH_TOL_DEG
                 notes.append(f"detected sun at zenith {zen_img:.2f} deg under {p}, computed {sun_zenith_deg:.2f} deg")
+                if sun.extended:
+                    zen_edge = math.degrees(float(rho_to_theta(
+                        torch.tensor(max(r - sun.radius_px, 0.0) / r90, dtype=torch.float64), p)))
+                    tol += abs(zen_img - zen_edge)
+                    notes.append(f"the sun found in a saturated aureole: its zenith known to {tol - SUN_ZENITH_TOL_DEG:.1f} "
+                                 f"deg under {p}")
             else:
                 score = math.inf
                 notes.append(f"detected sun radius {r:.1f} px is beyond the {p} projection's domain")
@@ -463,7 +604,14 @@ def cameras_from_sun(
                             up_azimuth_deg=heading, max_zenith_deg=max_zenith_deg)
         x, y = cam.angles_to_pixel(zen_t, az_t)
         model_px = (float(x), float(y)) if math.isfinite(float(x)) else None
-        out.append(CameraGuess(cam, p, score, model_px, notes))
+        out.append(CameraGuess(cam, p, score, model_px, notes, tol))
     if sun is not None:
         out.sort(key=lambda g: g.score)
+        tied = [g for g in out[1:] if g.score - out[0].score < g.tolerance_deg]
+        if tied:
+            out[0].notes.append(
+                f"the sun cannot tell {out[0].projection} from {', '.join(g.projection for g in tied)}: their zenith "
+                f"angles for the detected sun lie within {max(g.tolerance_deg for g in tied):.1f} deg of each other's "
+                f"errors at zenith {sun_zenith_deg:.1f} deg (tilt allowance {SUN_ZENITH_TOL_DEG:g} deg); the sky "
+                "pattern must decide")
     return out

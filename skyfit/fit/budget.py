@@ -417,9 +417,25 @@ def sky_clusters(problem: FitProblem, phys: dict, clusters: int = CLUSTERS, min_
     return out
 
 
+SANDWICH_FORMS = ("jackknife", "cr1")
+"""The sandwich's small-sample forms (:func:`sandwich_covariance`); ``jackknife`` is the default."""
+
+
 def sandwich_covariance(problem: FitProblem, jac: list[Tensor], preds, residual_preds, labels: list[Tensor],
-                        phys: dict) -> tuple[Tensor, Tensor]:
+                        phys: dict, form: str = "jackknife") -> tuple[Tensor, Tensor]:
     """The cluster-robust sandwich covariance of x and the Gauss-Newton A^-1 it wraps (module docstring, term 2).
+
+    ``cr1``: V = A^-1 (sum_c s_c s_c^T) A^-1 G / (G - 1) (Liang & Zeger 1986 with the usual G / (G - 1)).
+    The fit absorbs the part of a cluster's error that its parameters can mimic, so the residuals
+    under-state it, the more the larger the cluster's share of the information A_c = J_c^T W J_c.
+    ``jackknife`` (CR3; MacKinnon & White 1985, J. Econometrics 29, 305; Bell & McCaffrey 2002, Survey
+    Methodology 28, 169) restores it: each score becomes A (A - A_c)^-1 s_c (the residuals times
+    (I - H_cc)^-1, H the hat matrix, by Woodbury), so that
+
+        V = (G - 1) / G  sum_c d_c d_c^T,   d_c = (A - A_c)^-1 s_c,
+
+    d_c being the Gauss-Newton change of x when cluster c is left out: the jackknife over sky regions.
+    (A - A_c)^-1 is a pseudo-inverse where leaving c out leaves a parameter undetermined.
 
     Args:
         problem: the fit problem; jac: :func:`prediction_jacobian` at the fit, list of (N_i, C_i, P).
@@ -427,26 +443,34 @@ def sandwich_covariance(problem: FitProblem, jac: list[Tensor], preds, residual_
         residual_preds: the model whose residuals o - m enter the scores (the numerically corrected one).
         labels: :func:`sky_clusters`, list of (N_i,).
         phys: the physical values at the fit (the noise scale).
+        form: ``jackknife`` or ``cr1`` (:data:`SANDWICH_FORMS`).
 
     Returns:
-        (V, A^-1), each (P, P): V = A^-1 (sum_c s_c s_c^T) A^-1 G / (G - 1) with s_c the sum of J_e^T W_e r_e over
-        the uncensored elements of cluster c; G the number of clusters with used elements. [x units^2]
+        (V, A^-1), each (P, P), with s_c the sum of J_e^T W_e r_e over the uncensored elements of cluster c and
+        G the number of clusters with used elements. [x units^2]
     """
+    if form not in SANDWICH_FORMS:
+        raise FitError(f"sandwich form must be one of {', '.join(SANDWICH_FORMS)}, got {form!r}")
     Jr = whitened_jacobian(problem, jac, preds, 0.0, phys)
     P = Jr[0].shape[-1]
     G = int(max(int(lab.max()) + 1 for lab in labels if lab.numel()))
     scores = torch.zeros(G, P, dtype=torch.float64, device=Jr[0].device)
-    A = torch.zeros(P, P, dtype=torch.float64, device=Jr[0].device)
+    info = torch.zeros(G, P, P, dtype=torch.float64, device=Jr[0].device)  # A_c
     for i, (j, m, o, lab) in enumerate(zip(Jr, residual_preds, problem.observations, labels)):
         s = o.sigma[o.mask] * phys_noise_scale(problem, phys, i)
         r = problem.loss.residuals(m, o.values[o.mask], s).to(torch.float64) * _uncensored(problem, i, m)
-        scores.index_add_(0, lab.to(scores.device), (j * r.unsqueeze(-1)).sum(1))  # one score per sample, then per cluster
-        jf = j.reshape(-1, P)
-        A = A + jf.T @ jf
-    used = scores.abs().sum(-1) > 0
+        lab = lab.to(scores.device)
+        scores.index_add_(0, lab, (j * r.unsqueeze(-1)).sum(1))  # one score per sample, then per cluster
+        info.index_add_(0, lab, torch.einsum("ncp,ncq->npq", j, j))
+    used = info.diagonal(dim1=-2, dim2=-1).sum(-1) > 0
     g = int(used.sum())
+    A = info.sum(0)
     A_inv = _pinv_sym(A)
-    V = A_inv @ (scores.T @ scores) @ A_inv * (g / max(g - 1, 1))
+    if form == "cr1":
+        V = A_inv @ (scores.T @ scores) @ A_inv * (g / max(g - 1, 1))
+    else:
+        d = torch.stack([_pinv_sym(A - info[c]) @ scores[c] for c in range(G) if bool(used[c])])
+        V = d.T @ d * ((g - 1) / max(g, 1))
     return 0.5 * (V + V.T), A_inv
 
 
@@ -541,7 +565,7 @@ def numerical_term(problem: FitProblem, x: Tensor, lap: dict, *, reference: SkyM
 def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, reference: SkyModel | None = None,
                  numerical: bool = True, floor: bool = True, refits: int = 0, options: FitOptions | None = None,
                  discrepancy: str = DISCREPANCY_DEFAULT, clusters: int = CLUSTERS, min_count: int = MIN_PER_CLUSTER,
-                 term: NumericalTerm | None = None) -> dict:
+                 sandwich_form: str = "jackknife", term: NumericalTerm | None = None) -> dict:
     """The Laplace summary with the total sigma (noise + numerical + discrepancy) and its breakdown.
 
     Args:
@@ -555,6 +579,7 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
         options: the refits' optimiser options (default 1 start, 100 L-BFGS iterations).
         discrepancy: ``floor``, ``sandwich`` or ``larger`` (:data:`DISCREPANCY_MODELS`, module docstring).
         clusters, min_count: the sandwich's clusters per observation and fewest samples per cluster (:func:`sky_clusters`).
+        sandwich_form: ``jackknife`` or ``cr1`` (:func:`sandwich_covariance`).
         term: :func:`numerical_term` of this problem, x and lap computed before (``reference``, ``numerical``,
             ``refits`` and ``options`` are then not used).
 
@@ -605,13 +630,13 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
                 term.jacobian = prediction_jacobian(problem, x)
             jac = term.jacobian
             labels = sky_clusters(problem, phys, clusters, min_count)
-            V, A_inv = sandwich_covariance(problem, jac, m_fit, m_cor, labels, phys)
+            V, A_inv = sandwich_covariance(problem, jac, m_fit, m_cor, labels, phys, sandwich_form)
             shares["sandwich"] = psd_part(V - A_inv)
             # the floor's share: Gauss-Newton covariance with sigma' minus that with sigma (PSD, where the full
             # Hessian with sigma' need not be: x* is not the optimum of the inflated problem)
             shares["floor"] = psd_part(gauss_newton_covariance(problem, jac, m_fit, f, phys) - A_inv) if f > 0 else zero
             sizes = torch.bincount(torch.cat(labels))
-            budget["discrepancy"].update(clusters=int(sizes.numel()), min_per_cluster=int(min_count),
+            budget["discrepancy"].update(clusters=int(sizes.numel()), form=sandwich_form, min_per_cluster=int(min_count),
                                          cluster_sizes=[int(sizes.min()), int(sizes.max())])
             if discrepancy == "larger":
                 shares["larger"] = psd_part(loewner_upper(A_inv + shares["floor"], A_inv + shares["sandwich"]) - A_inv)

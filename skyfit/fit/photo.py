@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from ..atmosphere.constants import PRESSURE_SCALE_HEIGHT_M
-from ..camera.autocal import CalibrationError, cameras_from_sun, detect_circle, detect_sun
+from ..camera.autocal import CalibrationError, cameras_from_sun, detect_circle, detect_sun, symmetry_axis
 from ..camera.fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, zenith_azimuth_to_enu
 from ..camera.masks import SUN_MASK_MAX_DEG, grow_outlier_mask, obstacle_mask, sun_mask
 from ..camera.sun import parse_location, parse_time, sun_position
@@ -252,7 +252,10 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
         if camera is None:
             circle = detect_circle(_luminance(np.where(np.isfinite(photo.rgb), photo.rgb, 0.0)), photo.valid)
             inside = _disc(h, w, circle.cx, circle.cy, circle.radius)
-            detected = detect_sun(photo.darkest, photo.darkest_saturated, inside & inside_valid)
+            axis = symmetry_axis(_luminance(np.where(np.isfinite(photo.rgb), photo.rgb, 0.0)), circle.cx, circle.cy,
+                                 circle.radius, photo.valid)
+            detected = detect_sun(photo.darkest, photo.darkest_saturated, inside & inside_valid,
+                                  centre=(circle.cx, circle.cy), axis_deg=axis)
             candidates = cameras_from_sun((h, w), circle, detected, sz, sa, projections=tuple(projections))
             cam = candidates[0].camera
             notes.extend(candidates[0].notes)
@@ -262,7 +265,11 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
             cam = camera if isinstance(camera, FisheyeCamera) else camera_from_dict(camera, (h, w))
             if tuple(cam.shape) != (h, w):
                 raise PhotoFitError(f"photo {src}: the camera is for {cam.height}x{cam.width} images, the photo is {h}x{w}")
-            detected = detect_sun(photo.darkest, photo.darkest_saturated, cam.valid_mask().numpy() & inside_valid)
+            cxy = (float(cam.cx), float(cam.cy))
+            axis = symmetry_axis(_luminance(np.where(np.isfinite(photo.rgb), photo.rgb, 0.0)), *cxy, float(cam.r90),
+                                 photo.valid)
+            detected = detect_sun(photo.darkest, photo.darkest_saturated, cam.valid_mask().numpy() & inside_valid,
+                                  centre=cxy, axis_deg=axis)
         seconds["calibrate"] = _now() - t1
         if detected is None:
             notes.append("the sun is not seen in the photo (hidden or outside the view): the heading comes from the sky pattern")
@@ -557,23 +564,19 @@ def _fixed_camera_values(meta: dict | None) -> dict:
     return out
 
 
-PROJECTION_SCORE_TOL_DEG = 1.0
-"""Projections whose sun-radius scores (:func:`skyfit.camera.autocal.cameras_from_sun`) lie within this of the
-best are told apart by short fits of the sky pattern, not by the sun. [deg]"""
-
-
 def projection_decision(candidates: Sequence, detected) -> list:
     """The candidate cameras the sun alone cannot tell apart, best first; one (the sun decides) or several.
 
-    Several when no sun was detected, when it was found only as an extended saturated region (its deepest point
-    places the sun's azimuth well, its radius not), or for the candidates whose score is within
-    :data:`PROJECTION_SCORE_TOL_DEG` of the best's: :func:`fit_scene` fits each briefly and keeps the lowest loss.
+    All of them when no sun was detected; else those whose score lies within their ``tolerance_deg`` of the
+    best's (:func:`skyfit.camera.autocal.cameras_from_sun`: the tilt allowance, plus the radial extent of a
+    sun found in a saturated aureole). :func:`fit_scene` fits each briefly and keeps the lowest loss.
     """
     if not candidates:
         return []
+    if detected is None:
+        return list(candidates)
     best = candidates[0]
-    vague = detected is None or getattr(detected, "extended", False)
-    return [c for c in candidates if vague or c.score - best.score < PROJECTION_SCORE_TOL_DEG]
+    return [c for c in candidates if c is best or c.score - best.score < c.tolerance_deg]
 
 
 def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None, camera_meta: dict | None = None,
@@ -998,7 +1001,7 @@ def photo_result(scene: PhotoScene, blocks: BlockImage, prep, problem, res, conf
     result["camera"] = cam_meta
     result["sun"] = {"zenith_deg": scene.sun_zenith_deg, "azimuth_deg": scene.sun_azimuth_deg, "model_px": model_px,
                      "detected_px": detected_px, "separation_deg": sep,
-                     "detected_kind": None if det is None else ("saturated region's deepest point" if det.extended
+                     "detected_kind": None if det is None else ("saturated aureole" if det.extended
                                                                else "saturated core" if det.saturated else "peak"),
                      "detected_radius_px": None if det is None else float(det.radius_px)}
     result["aerosol"] = {"aod_550": vals["mie_aod_550"], "angstrom_alpha": vals["mie_angstrom_alpha"], "g": vals["mie_g"],
