@@ -1,14 +1,14 @@
 """The camera from the image alone, on the synthetic photo suite: circle, sun, projection, heading vs the truth.
 
 Runs only what :func:`skyfit.fit.photo.prepare_scene` does before the atmosphere fit when no camera is given
-(read the photo, compute the sun (SPA), :func:`~skyfit.camera.autocal.detect_circle`,
-:func:`~skyfit.camera.autocal.detect_sun`, :func:`~skyfit.camera.autocal.cameras_from_sun`) on every case
-of a suite made by :func:`skyfit.tools.photo_synth.make_suite` (``truth.json`` in each folder) and prints a
-Markdown table: the true and the chosen projection (with the runner-up and both scores), whether the sun's
-evidence decides the projection or :func:`skyfit.fit.photo.fit_scene` would run its short sky-pattern fits
-("fits: ..." then lists the projections they compare; the choice shown is the sun's alone), the detected sun
-vs the true sun pixel [px] and angle [deg, under the true camera], the heading error [deg] and the centre
-error [px]. About 1 s per case.
+(read the photo, compute the sun (SPA), :func:`skyfit.fit.photo.cameras_from_image`: circle, symmetry axis,
+sun, one camera per projection) on every case of a suite made by :func:`skyfit.tools.photo_synth.make_suite`
+(``truth.json`` in each folder) and prints a Markdown table: the true projection, the sun's best and
+runner-up (with their scores), which projections the sun cannot tell apart (:func:`skyfit.fit.photo.
+projection_decision`; :func:`skyfit.fit.photo.fit_scene` fits those briefly and keeps the lowest loss, not run
+here: "—" where the sun decides alone), the detected vs the true sun pixel [px] and the angle between them
+[deg, under the true camera], the heading error of the untilted guess [deg; a tilt t adds up to about
+t / sin(zenith)] and the centre error [px]. About 1 s per case.
 
     OMP_NUM_THREADS=1 .venv/bin/python scripts/photo_calibration_check.py --cases /tmp/photo_cases
 """
@@ -31,10 +31,9 @@ def circular_diff_deg(a: float, b: float) -> float:
 
 def check_case(folder: Path, diag: Path | None = None) -> dict:
     """The camera-from-image step of one case against its ``truth.json``."""
-    from skyfit.camera.autocal import cameras_from_sun, detect_circle, detect_sun, symmetry_axis
     from skyfit.camera.fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, zenith_azimuth_to_enu
     from skyfit.camera.sun import parse_location, parse_time, sun_position
-    from skyfit.fit.photo import _disc, _luminance, projection_decision
+    from skyfit.fit.photo import cameras_from_image, projection_decision
     from skyfit.io.photo import read_photo
 
     truth = json.loads((folder / "truth.json").read_text())
@@ -44,12 +43,7 @@ def check_case(folder: Path, diag: Path | None = None) -> dict:
     sp = sun_position(parse_time(truth["time"]), lat, lon, elev)
     sz, sa = float(sp.zenith), float(sp.azimuth)
     h, w = photo.rgb.shape[:2]
-    lum = _luminance(np.where(np.isfinite(photo.rgb), photo.rgb, 0.0))
-    circle = detect_circle(lum, photo.valid)
-    inside = _disc(h, w, circle.cx, circle.cy, circle.radius) & photo.valid
-    axis = symmetry_axis(lum, circle.cx, circle.cy, circle.radius, photo.valid)
-    sun = detect_sun(photo.darkest, photo.darkest_saturated, inside, centre=(circle.cx, circle.cy), axis_deg=axis)
-    cands = cameras_from_sun((h, w), circle, sun, sz, sa, projections=CLASSICAL_PROJECTIONS)
+    circle, sun, cands = cameras_from_image(photo, sz, sa, CLASSICAL_PROJECTIONS)
     seconds = time.perf_counter() - t0
     tc = truth["camera"]
     true_cam = FisheyeCamera.from_metadata({k: v for k, v in tc.items() if k in (

@@ -35,6 +35,7 @@ __all__ = [
     "cameras_from_sun",
     "detect_circle",
     "detect_sun",
+    "fill_small_holes",
     "heading_from_sun",
     "symmetry_axis",
 ]
@@ -102,8 +103,8 @@ class CameraGuess:
         notes: what the guess assumed or could not determine, one line each.
         tolerance_deg: how far above the best score this projection's may lie and still be the right one:
             :data:`SUN_ZENITH_TOL_DEG` (the tilt), plus for an extended detection the zenith span of its
-            ``radius_px`` toward the centre under this projection (the sun lies between the aureole's edge
-            nearest the zenith and the detected point). NaN without a detected sun. [deg]
+            ``radius_px`` along the radius under this projection (the sun lies within it of the detected
+            point). NaN without a detected sun. [deg]
     """
 
     camera: FisheyeCamera
@@ -286,12 +287,30 @@ def detect_circle(luminance: np.ndarray, valid: np.ndarray | None = None, *, see
 
 
 # -------------------------------------------------------------------------------------- sun
+
+def fill_small_holes(mask: np.ndarray, max_area: int) -> np.ndarray:
+    """``mask`` (shape (H, W) bool) with its enclosed holes of at most ``max_area`` pixels filled (labels and
+    counts; the ``remove_small_holes`` keyword changed in scikit-image 0.26)."""
+    lab = skimage.measure.label(~mask, connectivity=1)
+    area = np.bincount(lab.ravel())
+    border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+    small = area <= max_area
+    small[border] = False
+    small[0] = False
+    return mask | small[lab]
+
+
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
 """Linear sRGB to relative luminance Y (IEC 61966-2-1). [1]"""
 
 
 EXTENDED_MIN_PX = 20
 """A saturated region that is no disc counts as the sun's aureole from this many pixels on."""
+
+SUN_HOLE_MAX_FRACTION = 0.001
+"""Holes in the saturated mask up to this fraction of the circle's pixels are filled: JPEG noise leaves codes
+under the clip level inside the sun's disc and a saturated aureole (1-20 px each on the 600 x 600 photos of
+docs/photos.md); a larger unsaturated area enclosed by saturation (inside a saturated dome ring) is no hole. [1]"""
 
 SYMMETRY_MAX_RATIO = 0.3
 """:func:`symmetry_axis` accepts an axis whose median mirror difference of log luminance is under this
@@ -369,25 +388,46 @@ def _compact(region, min_ratio: float = 0.2, min_solidity: float = 0.8) -> bool:
     return region.axis_minor_length / major >= min_ratio and region.solidity >= min_solidity
 
 
-def _sun_on_axis(blob: np.ndarray, inside: np.ndarray, cx: float, cy: float, axis_deg: float
-                 ) -> tuple[float, float, float] | None:
+AXIS_TOL_DEG = 3.0
+"""A saturated core counts as on the symmetry axis within this angle about the circle's centre (plus its own
+radius and 3 px): a tilt of t moves the axis off the sun by about t / sin(zenith). [deg]"""
+
+
+def _near_axis(region, centre: tuple[float, float], axis_deg: float) -> bool:
+    """The region's centroid lies on the sun's half of the symmetry axis (:data:`AXIS_TOL_DEG`)."""
+    y, x = region.centroid
+    dx, dy = x - float(centre[0]), y - float(centre[1])
+    ux, uy = math.cos(math.radians(axis_deg)), math.sin(math.radians(axis_deg))
+    along, across = dx * ux + dy * uy, abs(-dx * uy + dy * ux)
+    reach = math.sqrt(region.area / math.pi) + 3.0
+    return along > -reach and across <= reach + max(along, 0.0) * math.sin(math.radians(AXIS_TOL_DEG))
+
+
+def _sun_on_axis(blob: np.ndarray, saturated: np.ndarray, inside: np.ndarray, cx: float, cy: float, axis_deg: float,
+                 max_hole: int) -> tuple[float, float, float] | None:
     """The sun in a saturated aureole: on the symmetry axis, the centre of the largest disc inside the region
     that touches the region's end nearest the centre (the zenith).
 
     The region is where aureole(psi) + sky(x) exceeds the clip level; the sky brightens toward the horizon,
     so the region reaches farthest from the sun there and least toward the zenith, and a disc around the sun
     through that nearest end stays inside the region. Along the axis from that end the distance to the
-    region's edge (``scipy.ndimage.distance_transform_edt``; the rim and masked pixels are no edge: the
-    aureole goes on behind them; thin obstacles are bridged by a closing of 3 px) grows as fast as the
-    distance from the end while that end is the nearest edge point, i.e. up to the centre of the disc.
+    region's edge (``scipy.ndimage.distance_transform_edt``; thin obstacles are bridged by a closing of 3 px)
+    grows as fast as the distance from the end while that end is the nearest edge point, i.e. up to the
+    centre of the disc. Where the rim (an edge here) cuts the aureole the disc stops halfway between the end
+    and the rim, short of a sun nearer the rim; where the horizon's saturation widens the region faster than
+    the aureole, past the sun. Measured: 1.2-1.4° from the sun on three of the study's photos
+    (docs/photos.md), 4.2° on one 13° above the horizon; the sun lay within the returned distance of the
+    point on all four and on the synthetic aureoles of tests/test_photo_autocal_sun.py.
 
     Returns:
         (x, y, distance from the end) [px], or None where the axis misses the region.
     """
     import scipy.ndimage  # scipy loads with skimage.measure anyway
 
-    region = scipy.ndimage.binary_fill_holes(skimage.morphology.closing(blob, skimage.morphology.disk(3)) | blob)
-    depth = scipy.ndimage.distance_transform_edt(region | ~inside)
+    closed = fill_small_holes(skimage.morphology.closing(saturated, skimage.morphology.disk(3)) | saturated, max_hole)
+    lab = skimage.measure.label(closed, connectivity=2)
+    region = np.isin(lab, np.unique(lab[blob & closed])) & (lab > 0)  # the blob with what thin obstacles cut off
+    depth = scipy.ndimage.distance_transform_edt(region & inside)
     ux, uy = math.cos(math.radians(axis_deg)), math.sin(math.radians(axis_deg))
     r = np.arange(0.0, math.hypot(*region.shape), 0.5)
     on = _sample(region.astype(np.float64), cx + r * ux, cy + r * uy, 0) > 0.5
@@ -406,16 +446,17 @@ def detect_sun(darkest_rgb: np.ndarray, darkest_saturated: np.ndarray, inside: n
                centre: tuple[float, float] | None = None, axis_deg: float | None = None) -> SunDetection | None:
     """The sun's image: centroid of its saturated core in the darkest frame, else of a compact peak.
 
-    Saturated path: the saturated pixels inside the circle, their holes filled (JPEG noise leaves single
-    codes under the clip level inside the sun's disc), are opened with a disc of radius 2 px
+    Saturated path: the saturated pixels inside the circle, their small holes filled
+    (:data:`SUN_HOLE_MAX_FRACTION`), are opened with a disc of radius 2 px
     (``skimage.morphology``; removes blooming streaks and lines under 5 px wide) and labelled
-    (``skimage.measure.label``). The largest region is the sun's: lens-flare ghosts and bright bits of
-    sky between obstacles at the rim are smaller. A compact region (minor/major axis >= 0.2, solidity >= 0.8)
-    clear of the circle's rim is the sun's core: its centroid. Otherwise (from :data:`EXTENDED_MIN_PX` on)
-    it is the saturated aureole, merged with the bright horizon or cut by the rim, whose centroid lies
-    toward the horizon: with ``centre`` and ``axis_deg`` (:func:`symmetry_axis`) the sun is placed on the
-    axis (:func:`_sun_on_axis`), else at the region's deepest point; ``extended`` is set. A small region that
-    is no disc is looked for unopened. Without saturation: the brightest pixel of the luminance (Gaussian
+    (``skimage.measure.label``). The sun's core is the largest compact region (minor/major axis >= 0.2,
+    solidity >= 0.8) clear of the circle's rim (or under :data:`EXTENDED_MIN_PX`), and with ``centre`` and
+    ``axis_deg`` (:func:`symmetry_axis`) on the sun's half of that axis (:data:`AXIS_TOL_DEG`): lens-flare
+    ghosts lie on the other half, bright bits of sky between obstacles at the rim off the axis. Its centroid.
+    Without such a core the largest region (from :data:`EXTENDED_MIN_PX` on) is the saturated aureole,
+    merged with the bright horizon or cut by the rim, whose centroid lies toward the horizon: the sun is
+    placed on the axis (:func:`_sun_on_axis`), or without one at the region's deepest point; ``extended``
+    is set. Without a core or a large region in the opened mask, the unopened one is searched the same way. Without saturation: the brightest pixel of the luminance (Gaussian
     sigma = 1 px) if it stands at least 20x above the median of an annulus around it (5-10 % of the circle's
     radius away) and the region above half its height is compact and small; its centroid is weighted by the
     luminance above the annulus's.
@@ -442,25 +483,34 @@ def detect_sun(darkest_rgb: np.ndarray, darkest_saturated: np.ndarray, inside: n
     if sat.shape != rgb.shape[:2] or inside.shape != rgb.shape[:2]:
         raise CalibrationError(f"saturated {sat.shape} and inside {inside.shape} masks must match the image "
                                f"{rgb.shape[:2]}")
-    sat = scipy.ndimage.binary_fill_holes(sat & inside) & inside
+    max_hole = max(4, int(SUN_HOLE_MAX_FRACTION * inside.sum()))
+    sat = fill_small_holes(sat & inside, max_hole) & inside
     if sat.sum() >= 3:
         opened = skimage.morphology.opening(sat, skimage.morphology.disk(2))
+        near_rim = skimage.morphology.dilation(~inside, skimage.morphology.disk(2))
         for mask in (opened, sat):  # a core under 5 px wide does not survive the opening: then the raw mask
             regions = [r for r in skimage.measure.regionprops(skimage.measure.label(mask, connectivity=2))
                        if r.area >= 3]
             if not regions:
                 continue
-            best = max(regions, key=lambda r: r.area)
-            blob = np.zeros_like(sat)
-            blob[tuple(best.coords.T)] = True
-            clipped = bool((skimage.morphology.dilation(blob, skimage.morphology.disk(2)) & ~inside).any())
-            if _compact(best) and (not clipped or best.area < EXTENDED_MIN_PX):
+            cores = [r for r in regions if _compact(r) and (r.area < EXTENDED_MIN_PX or not near_rim[tuple(r.coords.T)].any())]
+            if centre is not None and axis_deg is not None:
+                cores = [r for r in cores if _near_axis(r, centre, axis_deg)]
+            if cores:
+                best = max(cores, key=lambda r: r.area)
                 y, x = best.centroid
                 return SunDetection(float(x), float(y), math.sqrt(best.area / math.pi), True, int(best.area))
+            best = max(regions, key=lambda r: r.area)
             if best.area >= EXTENDED_MIN_PX:
+                blob = np.zeros_like(sat)
+                blob[tuple(best.coords.T)] = True
                 on_axis = None
                 if centre is not None and axis_deg is not None:
-                    on_axis = _sun_on_axis(blob, inside, float(centre[0]), float(centre[1]), float(axis_deg))
+                    for end in (0.0, 180.0):  # the axis's brighter end, else the other (a bright anti-solar horizon)
+                        on_axis = _sun_on_axis(blob, sat, inside, float(centre[0]), float(centre[1]),
+                                               float(axis_deg) + end, max_hole)
+                        if on_axis is not None:
+                            break
                 if on_axis is None:  # the region's deepest point
                     depth = scipy.ndimage.distance_transform_edt(blob)
                     i0, j0 = np.unravel_index(np.argmax(depth), depth.shape)
@@ -590,10 +640,10 @@ def cameras_from_sun(
                 score = abs(zen_img - sun_zenith_deg)
                 tol = SUN_ZENITH_TOL_DEG
                 notes.append(f"detected sun at zenith {zen_img:.2f} deg under {p}, computed {sun_zenith_deg:.2f} deg")
-                if sun.extended:
-                    zen_edge = math.degrees(float(rho_to_theta(
-                        torch.tensor(max(r - sun.radius_px, 0.0) / r90, dtype=torch.float64), p)))
-                    tol += abs(zen_img - zen_edge)
+                if sun.extended:  # the sun within radius_px of the point along the axis (_sun_on_axis)
+                    span = [math.degrees(float(rho_to_theta(torch.tensor(rr / r90, dtype=torch.float64), p)))
+                            for rr in (max(r - sun.radius_px, 0.0), min(r + sun.radius_px, circle.radius))]
+                    tol += max(zen_img - span[0], span[1] - zen_img, 0.0)
                     notes.append(f"the sun found in a saturated aureole: its zenith known to {tol - SUN_ZENITH_TOL_DEG:.1f} "
                                  f"deg under {p}")
             else:

@@ -11,7 +11,7 @@ import numpy as np
 import skimage  # lazy sub-packages: skimage.morphology etc. load (with scipy, ~0.7 s) at first use, not at `import skyfit`
 import torch
 
-from .autocal import CalibrationError, SunDetection
+from .autocal import CalibrationError, SunDetection, fill_small_holes
 from .fisheye import FisheyeCamera
 
 __all__ = ["SUN_MASK_MAX_DEG", "grow_outlier_mask", "obstacle_mask", "sun_mask"]
@@ -171,18 +171,6 @@ def _touching(components: np.ndarray, seed: np.ndarray) -> np.ndarray:
     return np.isin(components, ids) & (components > 0)
 
 
-def _fill_small_holes(mask: np.ndarray, max_area: int) -> np.ndarray:
-    """``mask`` with enclosed holes of at most ``max_area`` pixels filled (labels and counts; the
-    ``remove_small_holes`` keyword changed in scikit-image 0.26)."""
-    lab = skimage.measure.label(~mask, connectivity=1)
-    area = np.bincount(lab.ravel())
-    border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
-    small = area <= max_area
-    small[border] = False
-    small[0] = False
-    return mask | small[lab]
-
-
 def obstacle_mask(linear_rgb: np.ndarray, inside: np.ndarray, camera: FisheyeCamera, *,
                   max_elevation_deg: float = 35.0) -> np.ndarray:
     """Horizon obstacles (buildings, trees, mountains, masts, the dome's rim) connected to the circle's rim.
@@ -241,7 +229,7 @@ def obstacle_mask(linear_rgb: np.ndarray, inside: np.ndarray, camera: FisheyeCam
     rim = inside & ~skimage.morphology.erosion(inside, skimage.morphology.disk(2))
     seed = rim | skimage.morphology.dilation(below & valid.numpy(), skimage.morphology.disk(1))
     mask = _touching(skimage.measure.label(cand, connectivity=2), seed)
-    mask = _fill_small_holes(mask, int(0.005 * inside.sum()))
+    mask = fill_small_holes(mask, int(0.005 * inside.sum()))
     mask = skimage.morphology.dilation(mask, skimage.morphology.disk(2))
     return (mask | below) & inside
 

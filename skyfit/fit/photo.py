@@ -6,10 +6,12 @@ as plain functions on in-memory objects:
 1. **read** (:func:`skyfit.io.photo.read_photo`): JPEG/PNG/TIFF, RAW, ``.hdr``, EXR or a
    bracket folder -> one linear image with per-pixel variance and censoring;
 2. **the sun** by NREL SPA from the time and place (:func:`skyfit.camera.sun_position`);
-3. **the camera** (:mod:`skyfit.camera.autocal`): the lens circle from the image, the sun's
-   saturated core, one candidate camera per projection with the heading that puts the computed
-   sun on the detected one, ranked by how well each projection puts it at the detected radius;
-   ``camera=`` (a :class:`~skyfit.camera.FisheyeCamera` or CAMERA.yaml) skips this;
+3. **the camera** (:mod:`skyfit.camera.autocal`, :func:`cameras_from_image`): the lens circle from
+   the image, the sky's mirror axis (the sun's vertical), the sun's saturated core (or, in a saturated
+   aureole, its place on that axis), one candidate camera per projection with the heading that puts
+   the computed sun on the detected one, ranked by how well each projection puts it at the detected
+   radius; projections the sun cannot tell apart (:func:`projection_decision`) are fitted briefly and
+   the lowest loss wins; ``camera=`` (a :class:`~skyfit.camera.FisheyeCamera` or CAMERA.yaml) skips this;
 4. **what is not sky** (:mod:`skyfit.camera.masks`): outside the circle, below the horizon, the
    sun's disc and flare, horizon obstacles, the user's mask; saturated and black pixels are
    *censored* (bounds), not dropped;
@@ -41,7 +43,8 @@ import numpy as np
 import torch
 
 from ..atmosphere.constants import PRESSURE_SCALE_HEIGHT_M
-from ..camera.autocal import CalibrationError, cameras_from_sun, detect_circle, detect_sun, symmetry_axis
+from ..camera.autocal import (CalibrationError, CameraGuess, Circle, SunDetection, cameras_from_sun, detect_circle,
+                              detect_sun, symmetry_axis)
 from ..camera.fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, zenith_azimuth_to_enu
 from ..camera.masks import SUN_MASK_MAX_DEG, grow_outlier_mask, obstacle_mask, sun_mask
 from ..camera.sun import parse_location, parse_time, sun_position
@@ -250,13 +253,7 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
     inside_valid = photo.valid
     try:
         if camera is None:
-            circle = detect_circle(_luminance(np.where(np.isfinite(photo.rgb), photo.rgb, 0.0)), photo.valid)
-            inside = _disc(h, w, circle.cx, circle.cy, circle.radius)
-            axis = symmetry_axis(_luminance(np.where(np.isfinite(photo.rgb), photo.rgb, 0.0)), circle.cx, circle.cy,
-                                 circle.radius, photo.valid)
-            detected = detect_sun(photo.darkest, photo.darkest_saturated, inside & inside_valid,
-                                  centre=(circle.cx, circle.cy), axis_deg=axis)
-            candidates = cameras_from_sun((h, w), circle, detected, sz, sa, projections=tuple(projections))
+            circle, detected, candidates = cameras_from_image(photo, sz, sa, projections)
             cam = candidates[0].camera
             notes.extend(candidates[0].notes)
         else:
@@ -281,6 +278,30 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
     return PhotoScene(photo, sz, sa, float(sp.distance_au), when.isoformat(),
                       {"latitude_deg": float(lat), "longitude_deg": float(lon), "elevation_m": float(elev)},
                       cam, candidates, detected, circle, masks, notes, seconds)
+
+
+def cameras_from_image(photo: LinearPhoto, sun_zenith_deg: float, sun_azimuth_deg: float,
+                       projections: Sequence[str] = CLASSICAL_PROJECTIONS) -> tuple[Circle, SunDetection | None, list[CameraGuess]]:
+    """The camera from the image alone (:mod:`skyfit.camera.autocal`): the lens circle, the sky's symmetry axis, the
+    sun, and one untilted camera per projection, best first (:func:`projection_decision` says which the sun cannot
+    tell apart).
+
+    Args:
+        photo: the read photo.
+        sun_zenith_deg, sun_azimuth_deg: the computed sun. [deg]
+        projections: the candidate projections.
+
+    Raises:
+        CalibrationError: no circle found.
+    """
+    h, w = photo.rgb.shape[:2]
+    lum = _luminance(np.where(np.isfinite(photo.rgb), photo.rgb, 0.0))
+    circle = detect_circle(lum, photo.valid)
+    inside = _disc(h, w, circle.cx, circle.cy, circle.radius) & photo.valid
+    axis = symmetry_axis(lum, circle.cx, circle.cy, circle.radius, photo.valid)
+    detected = detect_sun(photo.darkest, photo.darkest_saturated, inside, centre=(circle.cx, circle.cy), axis_deg=axis)
+    candidates = cameras_from_sun((h, w), circle, detected, sun_zenith_deg, sun_azimuth_deg, projections=tuple(projections))
+    return circle, detected, candidates
 
 
 def _now() -> float:
@@ -996,8 +1017,8 @@ def photo_result(scene: PhotoScene, blocks: BlockImage, prep, problem, res, conf
     if scene.circle is not None:
         cam_meta["circle"] = dataclasses.asdict(scene.circle)
     if scene.candidates:
-        cam_meta["projection_evidence"] = [{"projection": c.projection, "sun_radius_error_deg": c.score}
-                                           for c in scene.candidates]
+        cam_meta["projection_evidence"] = [{"projection": c.projection, "sun_radius_error_deg": c.score,
+                                            "tolerance_deg": c.tolerance_deg} for c in scene.candidates]
     result["camera"] = cam_meta
     result["sun"] = {"zenith_deg": scene.sun_zenith_deg, "azimuth_deg": scene.sun_azimuth_deg, "model_px": model_px,
                      "detected_px": detected_px, "separation_deg": sep,
