@@ -18,7 +18,8 @@ from skyfit.fit import ATMOSPHERE_PARAMETERS, NUISANCE, PARAMETERS, FitError, Pa
 LAM = np.array([380.0, 450.0, 550.0, 650.0, 720.0])
 # the two-term HG parameters need a HG config (earth_clear_sky_eval is Cornette-Shanks): tests/test_aerosol.py
 ALL_ATM = [n for n in ATMOSPHERE_PARAMETERS if n not in ("ground_albedo_scale", "mie_aod_550", "mie_g2", "mie_hg_weight",
-                                                      "mie_median_radius", "mie_geometric_sigma")]  # these switch the phase
+                                                      "mie_median_radius", "mie_geometric_sigma", "mie_coarse_radius",
+                                                      "mie_coarse_sigma", "mie_fine_fraction")]  # these switch the phase
 
 
 @pytest.fixture(scope="module")
@@ -192,3 +193,25 @@ def test_aerosol_optical_depth_parameterisation(eval_atm):
     assert Parameterisation(eval_atm, ["mie_aod_550"]).defaults["mie_aod_550"] == pytest.approx(0.04 * 0.55**-0.8, rel=1e-12)
     with pytest.raises(FitError, match="not both"):
         Parameterisation(eval_atm, ["mie_beta_550", "mie_aod_550"])
+
+
+def test_a_fitted_value_on_a_bound_rebuilds():
+    """A fit that ran into a bound reports the sigmoid's rounded end, exactly the bound: inside_bounds moves it just
+    inside (u = BOUND_EDGE), the transform accepts it and maps back to the bound within 1e-11 of the range, interior
+    values pass unchanged, and a user's value on a bound is still refused."""
+    import torch
+
+    from skyfit.fit.parameters import BOUND_EDGE, PARAMETERS, inside_bounds
+
+    for name, v in (("mie_g2", 0.0), ("mie_g2", -1.0), ("mie_median_radius", PARAMETERS["mie_median_radius"].lo),
+                    ("mie_median_radius", PARAMETERS["mie_median_radius"].hi), ("mie_fine_fraction", 1.0)):
+        spec = PARAMETERS[name]
+        w = inside_bounds(name, v)
+        assert w != v and spec.lo < w < spec.hi
+        x = spec.inverse(w)
+        back = float(spec.forward(torch.tensor(x, dtype=torch.float64)))
+        assert abs(back - v) <= 1e-11 * (spec.hi - spec.lo) + BOUND_EDGE * spec.hi * 30
+    assert inside_bounds("mie_g2", -0.3) == -0.3 and inside_bounds("mie_g", [0.5, 0.7]) == [0.5, 0.7]
+    assert inside_bounds("exposure", 0.0) == 0.0  # unbounded transforms are left to their own checks
+    with pytest.raises(FitError, match="open interval"):
+        PARAMETERS["mie_g2"].inverse(0.0)

@@ -219,9 +219,10 @@ def detect_circle(luminance: np.ndarray, valid: np.ndarray | None = None, *, see
     """
     lum = _check_image(luminance, "luminance")
     h, w = lum.shape
-    valid = np.isfinite(lum) if valid is None else (np.asarray(valid, dtype=bool) & np.isfinite(lum))
+    valid = np.isfinite(lum) if valid is None else np.asarray(valid, dtype=bool)
     if valid.shape != lum.shape:
         raise CalibrationError(f"valid mask shape {valid.shape} differs from the image's {lum.shape}")
+    valid = valid & np.isfinite(lum)
     lum = np.where(valid, lum, 0.0)
     bright = float(np.percentile(lum[valid], 90)) if valid.any() else 0.0
     if not bright > 0:
@@ -307,10 +308,11 @@ _LUMA = np.array([0.2126, 0.7152, 0.0722])
 EXTENDED_MIN_PX = 20
 """A saturated region that is no disc counts as the sun's aureole from this many pixels on."""
 
-SUN_HOLE_MAX_FRACTION = 0.001
-"""Holes in the saturated mask up to this fraction of the circle's pixels are filled: JPEG noise leaves codes
-under the clip level inside the sun's disc and a saturated aureole (1-20 px each on the 600 x 600 photos of
-docs/photos.md); a larger unsaturated area enclosed by saturation (inside a saturated dome ring) is no hole. [1]"""
+SUN_HOLE_MAX_PX = 64
+"""Holes in the saturated mask up to this many pixels (a JPEG block of 8 x 8) are filled: JPEG noise leaves codes
+under the clip level inside the sun's disc and a saturated aureole (1-20 px each on the photos of docs/photos.md;
+a fifth of the sun's disc in case 12); a larger unsaturated area enclosed by saturation (the sky inside a
+saturated dome ring) is no hole. [px]"""
 
 SYMMETRY_MAX_RATIO = 0.3
 """:func:`symmetry_axis` accepts an axis whose median mirror difference of log luminance is under this
@@ -344,9 +346,10 @@ def symmetry_axis(luminance: np.ndarray, cx: float, cy: float, radius: float, va
         :data:`SYMMETRY_MAX_RATIO` of the typical one: clouds, an overcast sky).
     """
     lum = _check_image(luminance, "luminance")
-    valid = np.isfinite(lum) if valid is None else (np.asarray(valid, dtype=bool) & np.isfinite(lum))
+    valid = np.isfinite(lum) if valid is None else np.asarray(valid, dtype=bool)
     if valid.shape != lum.shape:
         raise CalibrationError(f"valid mask shape {valid.shape} differs from the image's {lum.shape}")
+    valid = valid & np.isfinite(lum)
     if not (radius > 0 and valid.any()):
         return None
     top = float(np.percentile(lum[valid], 99))
@@ -447,7 +450,7 @@ def detect_sun(darkest_rgb: np.ndarray, darkest_saturated: np.ndarray, inside: n
     """The sun's image: centroid of its saturated core in the darkest frame, else of a compact peak.
 
     Saturated path: the saturated pixels inside the circle, their small holes filled
-    (:data:`SUN_HOLE_MAX_FRACTION`), are opened with a disc of radius 2 px
+    (:data:`SUN_HOLE_MAX_PX`), are opened with a disc of radius 2 px
     (``skimage.morphology``; removes blooming streaks and lines under 5 px wide) and labelled
     (``skimage.measure.label``). The sun's core is the largest compact region (minor/major axis >= 0.2,
     solidity >= 0.8) clear of the circle's rim (or under :data:`EXTENDED_MIN_PX`), and with ``centre`` and
@@ -483,7 +486,7 @@ def detect_sun(darkest_rgb: np.ndarray, darkest_saturated: np.ndarray, inside: n
     if sat.shape != rgb.shape[:2] or inside.shape != rgb.shape[:2]:
         raise CalibrationError(f"saturated {sat.shape} and inside {inside.shape} masks must match the image "
                                f"{rgb.shape[:2]}")
-    max_hole = max(4, int(SUN_HOLE_MAX_FRACTION * inside.sum()))
+    max_hole = SUN_HOLE_MAX_PX
     sat = fill_small_holes(sat & inside, max_hole) & inside
     if sat.sum() >= 3:
         opened = skimage.morphology.opening(sat, skimage.morphology.disk(2))

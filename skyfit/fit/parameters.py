@@ -117,6 +117,29 @@ class ParameterSpec:
 
 
 _DEG = math.pi / 180.0
+BOUND_EDGE: float = 1e-12
+"""Position u in its range (0 and 1: the bounds) that :func:`inside_bounds` moves a fitted value at a bound to [1]."""
+
+
+def inside_bounds(name: str, v):
+    """A fitted value of a bounded parameter moved just inside its range when it sits on a bound (or a list of them).
+
+    A fit that ran into a bound reports the sigmoid's rounded end, exactly the bound, which the open range of
+    :meth:`ParameterSpec.inverse` refuses; results are read back (evaluate, the selection's refit) through this,
+    user values are not. Other values, and values outside the closed range, are returned unchanged."""
+    spec = PARAMETERS.get(name)
+    if isinstance(v, (list, tuple)):
+        return [inside_bounds(name, x) for x in v]
+    if spec is None or spec.transform not in ("interval", "loginterval") or not isinstance(v, (int, float)):
+        return v
+    lo, hi = spec.lo, spec.hi
+    if not math.isfinite(hi):  # a data-dependent upper bound (ground_albedo_scale): the lower one only
+        return lo + (BOUND_EDGE if v == lo else 0.0) if spec.transform == "interval" else v
+    if spec.transform == "interval":
+        u = BOUND_EDGE if v == lo else 1.0 - BOUND_EDGE if v == hi else None
+        return v if u is None else lo + (hi - lo) * u
+    u = BOUND_EDGE if v == lo else 1.0 - BOUND_EDGE if v == hi else None
+    return v if u is None else lo * math.exp(math.log(hi / lo) * u)
 
 PARAMETERS: dict[str, ParameterSpec] = {
     s.name: s

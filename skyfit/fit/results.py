@@ -20,7 +20,7 @@ from ..transmittance import integrator_from_spec
 from .budget import CLUSTERS, DISCREPANCY_DEFAULT, ReferenceModel, uncertainty
 from .model import FitProblem, SkyModel
 from .optimise import FitOptions, OptimiseResult
-from .parameters import PARAMETERS, FitError, Parameterisation
+from .parameters import PARAMETERS, FitError, Parameterisation, inside_bounds
 from .problem import RUN_SECTIONS, base_atmosphere
 from .report import dumps, plot_all, write_text_atomic
 
@@ -185,7 +185,8 @@ def model_from_result(res: dict) -> SkyModel:
 def fitted_atmosphere_values(res: dict) -> dict:
     """The atmosphere parameters a result moved away from its config: those fitted or set in ``fit.initial``."""
     fitted = set(res.get("free", [])) | set((res.get("settings") or {}).get("initial", {}) or {})
-    return {n: v for n, v in res["parameters"].items() if not PARAMETERS[n].nuisance and n in fitted}
+    # a value a fit left on a bound moves just inside it (inside_bounds), so that the result rebuilds
+    return {n: inside_bounds(n, v) for n, v in res["parameters"].items() if not PARAMETERS[n].nuisance and n in fitted}
 
 
 def atmosphere_from_result(res: dict, wavelengths_nm=None, dtype=torch.float64, device="cpu") -> Atmosphere:

@@ -15,7 +15,7 @@ import numpy as np
 
 from .optimise import FitOptions, fit
 from .data import Observation
-from .parameters import NUISANCE, ORIENTATION, PARAMETERS, FitError, check_names
+from .parameters import NUISANCE, ORIENTATION, PARAMETERS, FitError, check_names, inside_bounds
 from .losses import make_loss
 from .problem import fit_settings, load_data, prepare
 from .results import check_result_path, fitted_atmosphere_values, model_from_result, read_result, write_result
@@ -86,7 +86,7 @@ def refit_names(source_free) -> list[str]:
 
 def _nuisance_for(res: dict, obs: Observation, name: str):
     """A fitted nuisance value for ``obs``: its own if it was fitted, else the mean over the fit's observations."""
-    v = res["parameters"].get(name)
+    v = inside_bounds(name, res["parameters"].get(name))
     if v is None:
         return None
     if not isinstance(v, list):

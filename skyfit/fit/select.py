@@ -86,7 +86,8 @@ from .data import Observation
 from .losses import Loss
 from .model import FitProblem, SkyModel
 from .optimise import FitOptions, OptimiseResult, fit
-from .parameters import COARSE_MODE, LOGNORMAL_DERIVED, LOGNORMAL_MIE, NUISANCE, ORIENTATION, PARAMETERS, FitError, Parameterisation
+from .parameters import (COARSE_MODE, LOGNORMAL_DERIVED, LOGNORMAL_MIE, NUISANCE, ORIENTATION, PARAMETERS, FitError,
+                         Parameterisation, inside_bounds)
 from .problem import atmosphere_config, fit_settings, initial_values, prepare
 from .results import check_result_path, write_result
 
@@ -639,7 +640,7 @@ def run_select(data, config: dict, out, *, overrides: dict | None = None, config
     report = ladder.run(progress=progress)
     st, res_train, _ = report["_best"]
     # the chosen model on every pixel, warm-started from its fit on the training pixels
-    problem = ladder.problem(st, {n: res_train.parameters[n] for n in st.free}, observations)
+    problem = ladder.problem(st, {n: inside_bounds(n, res_train.parameters[n]) for n in st.free}, observations)
     res = fit(problem, dataclasses.replace(options, starts=1, progress=progress))
     settings = dataclasses.asdict(s)
     settings.update(free=list(st.free), orders=st.orders,
