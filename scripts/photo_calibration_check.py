@@ -75,6 +75,42 @@ def check_case(folder: Path, diag: Path | None = None) -> dict:
     return row
 
 
+class _StopBeforeMainFit(Exception):
+    pass
+
+
+def short_fit_choice(folder: Path) -> tuple[str | None, str]:
+    """The projection :func:`skyfit.fit.photo.fit_scene` keeps after its short fits and its note, stopped before the
+    main fit: ``block_image`` is wrapped to raise at the main fit's block count (the short fits use
+    ``QUICK_SAMPLES``). 15-40 s of CPU per case."""
+    import copy
+
+    import skyfit.fit.photo as fp
+    from skyfit.atmosphere import read_config
+
+    truth = json.loads((folder / "truth.json").read_text())
+    scene = fp.prepare_scene(folder / truth["photo"].rstrip("/"), time=truth["time"], location=truth["location"])
+    block_image = fp.block_image
+
+    def stop_at_main_fit(sc, step=None, exclude=None, target=fp.TARGET_SAMPLES, **kw):
+        if target == fp.TARGET_SAMPLES:
+            raise _StopBeforeMainFit
+        return block_image(sc, step=step, exclude=exclude, target=target, **kw)
+
+    fp.block_image = stop_at_main_fit
+    try:
+        fp.fit_scene(scene, copy.deepcopy(read_config("earth")[0]), laplace=False)
+    except _StopBeforeMainFit:
+        pass
+    finally:
+        fp.block_image = block_image
+    note = next((n for n in scene.notes if n.startswith("projection chosen")), None)
+    if note is None:
+        return None, "the sun decided"
+    losses = [item.rsplit(" ", 1) for item in note.split(" among ", 1)[1].split(", ")]
+    return min(losses, key=lambda pv: float(pv[1]))[0], note
+
+
 def save_diag(path: Path, photo, circle, sun, true_px, truth) -> None:
     """The darkest frame (log scale), its saturated pixels in red, the circle, true sun (green +), detected (cyan x)."""
     import skimage
@@ -114,6 +150,8 @@ def table(rows: list[dict]) -> str:
         (p1, s1), (p2, s2) = r["ranking"][0], r["ranking"][1]
         ok = "" if p1 == r["projection_true"] else " ✗"
         fits = ", ".join(r["short_fits"]) if r["short_fits"] else "—"
+        if r.get("projection_fits"):
+            fits += f" → {r['projection_fits']}" + ("" if r["projection_fits"] == r["projection_true"] else " ✗")
         se = "—" if r["sun_err_px"] is None else f"{r['sun_err_px']:.1f}"
         sd = "—" if r["sun_err_deg"] is None else f"{r['sun_err_deg']:.2f}"
         lines.append(f"| {r['case']} | {'yes' if r['bracket'] else 'no'} | {r['sun_zenith_deg']:.1f} | {r['projection_true']} "
@@ -125,7 +163,7 @@ def table(rows: list[dict]) -> str:
 def summary(rows: list[dict]) -> dict:
     ok = [r for r in rows if "error" not in r]
     classical = [r for r in ok if r["projection_true"] != "kannala_brandt"]
-    return {
+    out = {
         "cases": len(rows),
         "heading_within_2deg": sum(abs(r["heading_err_deg"]) <= 2 for r in ok),
         "centre_within_3px": sum(r["centre_err_px"] <= 3 for r in ok),
@@ -137,6 +175,10 @@ def summary(rows: list[dict]) -> dict:
         "truth_among_short_fits": sum(r["projection_true"] in r["short_fits"] for r in classical if r["short_fits"]),
         "short_fit_cases": sum(bool(r["short_fits"]) for r in classical),
     }
+    if any("projection_fits" in r for r in ok):
+        out["projection_right_after_short_fits"] = sum(r.get("projection_fits", r["projection_sun"]) == r["projection_true"]
+                                                       for r in classical)
+    return out
 
 
 def main(argv=None) -> int:
@@ -145,6 +187,8 @@ def main(argv=None) -> int:
     ap.add_argument("--only", help="comma list of case indices")
     ap.add_argument("--diag", help="folder for one diagnostic PNG per case (darkest frame, saturation, suns)")
     ap.add_argument("--json", help="write the rows and the summary to this JSON file")
+    ap.add_argument("--short-fits", action="store_true", help="also run fit_scene's short projection fits where the "
+                    "sun does not decide (15-40 s CPU per such case) and print the projection they keep")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     folders = sorted(p for p in Path(args.cases).iterdir() if (p / "truth.json").exists())
@@ -158,7 +202,15 @@ def main(argv=None) -> int:
         except ValueError as e:
             rows.append({"case": f.name, "error": str(e)})
         print(f"{f.name} done", file=sys.stderr, flush=True)
+    if args.short_fits:
+        for r in rows:
+            if r.get("short_fits"):
+                r["projection_fits"], r["short_fit_note"] = short_fit_choice(Path(args.cases) / r["case"])
+                print(f"{r['case']} ({r['projection_true']}): {r['short_fit_note']}", file=sys.stderr, flush=True)
     print(table(rows))
+    for r in rows:
+        if r.get("short_fit_note"):
+            print(f"- {r['case']} ({r['projection_true']}): {r['short_fit_note']}")
     s = summary(rows)
     print("\n```json\n" + json.dumps(s, indent=1) + "\n```")
     if args.json:

@@ -233,6 +233,7 @@ def main() -> int:
     ap.add_argument("--max-iter", type=int, help="L-BFGS iterations per rung (default: the config's)")
     ap.add_argument("--sigma", choices=("scaled", "known"), default="scaled")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--optimiser", choices=("auto", "lm", "lbfgs"), help="the rungs' optimiser (default: the config's)")
     ap.add_argument("--nuisance", help="comma list: the instrument's free parameters in every rung (default: those of "
                                        "the config's free list), e.g. exposure,sun_azimuth_offset (issue 14)")
     ap.add_argument("--table-only", action="store_true", help="only rebuild table.md from the JSON files in --out")
@@ -252,7 +253,7 @@ def main() -> int:
     cfg = load_yaml(args.config)
     if args.nuisance:  # the ladder keeps only the instrument's parameters of the free list
         cfg["fit"]["free"] = [n.strip() for n in args.nuisance.split(",") if n.strip()]
-    overrides = {"max_iter": args.max_iter, "select_sigma": args.sigma}
+    overrides = {"max_iter": args.max_iter, "select_sigma": args.sigma, "optimiser": args.optimiser}
     if args.extra_model and not args.table_only:
         for folder in folders:
             capture = folder.name.split("___")[-1][:5]
