@@ -211,8 +211,9 @@ def test_extended_sun_tolerance_is_the_zenith_span_of_its_radius():
 
 @pytest.mark.parametrize("projection", ["equidistant", "equisolid"])
 def test_projections_tied_near_the_zenith_and_the_notes_say_so(projection):
-    # at 15° zenith equidistant and equisolid put the sun 1.4° apart (normalised at 90°: 90 * 2 sin(7.5°) / sqrt(2)
-    # sin^-1 ... i.e. 15° against 13.56° / 16.48°), under the tilt allowance: the sky pattern must decide
+    # normalised at 90°, an equidistant sun at 15° (r/R90 = 15/90) reads 2 asin(sin(45°) 15/90) = 13.54° under
+    # equisolid, an equisolid one (r/R90 = sin(7.5°)/sin(45°)) 16.61° under equidistant: 1.5-1.6° apart, under
+    # the tilt allowance of 2°, so the sky pattern must decide
     other = "equisolid" if projection == "equidistant" else "equidistant"
     circle, sun = _detection_at(projection, 15.0)
     guesses = cameras_from_sun(SHAPE, circle, sun, 15.0, 130.0)
@@ -220,7 +221,7 @@ def test_projections_tied_near_the_zenith_and_the_notes_say_so(projection):
     tied = [g.projection for g in projection_decision(guesses, sun)]
     assert tied[0] == projection and other in tied and "orthographic" not in tied
     assert any("cannot tell" in n and other in n for n in guesses[0].notes)
-    # at 50° they differ by 3.7° (the matrix of docs/photos.md): the sun decides alone
+    # at 50° by 3.7-3.8° (46.26° and 53.79° by the same formulas): the sun decides alone
     circle, sun = _detection_at(projection, 50.0)
     guesses = cameras_from_sun(SHAPE, circle, sun, 50.0, 130.0)
     assert [g.projection for g in projection_decision(guesses, sun)] == [projection]

@@ -9,6 +9,7 @@ from .autocal import (
     detect_circle,
     detect_sun,
     heading_from_sun,
+    symmetry_axis,
 )
 from .fisheye import (
     CLASSICAL_PROJECTIONS,
@@ -72,6 +73,7 @@ __all__ = [
     "srgb_encode",
     "sun_mask",
     "sun_position",
+    "symmetry_axis",
     "synthesize_photo",
     "table_response",
     "theta_to_rho",

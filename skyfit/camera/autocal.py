@@ -459,10 +459,10 @@ def detect_sun(darkest_rgb: np.ndarray, darkest_saturated: np.ndarray, inside: n
     Without such a core the largest region (from :data:`EXTENDED_MIN_PX` on) is the saturated aureole,
     merged with the bright horizon or cut by the rim, whose centroid lies toward the horizon: the sun is
     placed on the axis (:func:`_sun_on_axis`), or without one at the region's deepest point; ``extended``
-    is set. Without a core or a large region in the opened mask, the unopened one is searched the same way. Without saturation: the brightest pixel of the luminance (Gaussian
-    sigma = 1 px) if it stands at least 20x above the median of an annulus around it (5-10 % of the circle's
-    radius away) and the region above half its height is compact and small; its centroid is weighted by the
-    luminance above the annulus's.
+    is set. Without a core or a large region in the opened mask, the unopened one is searched the same way.
+    Without saturation: the brightest pixel of the luminance (Gaussian sigma = 1 px) if it stands at least
+    20x above the median of an annulus around it (5-10 % of the circle's radius away) and the region above
+    half its height is compact and small; its centroid is weighted by the luminance above the annulus's.
 
     Args:
         darkest_rgb: linear RGB of the shortest exposure, shape (H, W, 3). [any unit]
@@ -496,7 +496,8 @@ def detect_sun(darkest_rgb: np.ndarray, darkest_saturated: np.ndarray, inside: n
                        if r.area >= 3]
             if not regions:
                 continue
-            cores = [r for r in regions if _compact(r) and (r.area < EXTENDED_MIN_PX or not near_rim[tuple(r.coords.T)].any())]
+            cores = [r for r in regions
+                     if _compact(r) and (r.area < EXTENDED_MIN_PX or not near_rim[tuple(r.coords.T)].any())]
             if centre is not None and axis_deg is not None:
                 cores = [r for r in cores if _near_axis(r, centre, axis_deg)]
             if cores:
@@ -553,9 +554,9 @@ SUN_ZENITH_TOL_DEG = 2.0
 
 The guesses are untilted, and a tilt of t degrees toward or away from the sun moves its zenith angle by t:
 2° covers a camera levelled by eye or with a bubble level (the photo study's tilts are 0-1.9°), the sun
-core's centroid (<= 0.5°) and the circle's radius (<= 1 px). Equidistant and equisolid differ by less than
-2.2° below 25° zenith and above 80°, and by at most 3.8° anywhere (normalised at 90°): the sun alone
-separates them only between about 30° and 75° zenith and a level camera."""
+core's centroid (<= 0.5°) and the circle's radius (<= 1 px). Normalised at 90°, equidistant and equisolid
+put the sun more than 2° apart only between about 20° and 80° zenith, and at most 3.8° apart (50-60°):
+elsewhere the sun alone cannot separate them, and within that band only on a camera levelled to 2°."""
 
 
 def heading_from_sun(cx: float, cy: float, sun_x: float, sun_y: float, sun_azimuth_deg: float) -> float:
@@ -593,9 +594,10 @@ def cameras_from_sun(
     tilt and the circle's own error: a tilt of t degrees toward or away from the sun changes its zenith
     angle by t, which is the same as another projection near the sun's zenith (the classical ones
     differ by 2-4° at 40-60° zenith, and not at all near the centre or, with this normalisation, at the
-    horizon). The tilt starts at 0 and is left to the fit of the sky pattern, which should also compare
-    the top two projections when their scores are within a few degrees. Without a detected sun the
-    heading is 0 and must come from the sky pattern.
+    horizon). The tilt starts at 0 and is left to the fit of the sky pattern, which compares the
+    projections whose scores lie within their ``tolerance_deg`` of the best (:data:`SUN_ZENITH_TOL_DEG`,
+    widened for a sun found in a saturated aureole); the best guess's notes then say the sun cannot tell
+    them apart. Without a detected sun the heading is 0 and must come from the sky pattern.
 
     Args:
         shape: image (H, W). [px]
@@ -647,8 +649,8 @@ def cameras_from_sun(
                     span = [math.degrees(float(rho_to_theta(torch.tensor(rr / r90, dtype=torch.float64), p)))
                             for rr in (max(r - sun.radius_px, 0.0), min(r + sun.radius_px, circle.radius))]
                     tol += max(zen_img - span[0], span[1] - zen_img, 0.0)
-                    notes.append(f"the sun found in a saturated aureole: its zenith known to {tol - SUN_ZENITH_TOL_DEG:.1f} "
-                                 f"deg under {p}")
+                    notes.append(f"the sun found in a saturated aureole: its zenith known to "
+                                 f"{tol - SUN_ZENITH_TOL_DEG:.1f} deg under {p}")
             else:
                 score = math.inf
                 notes.append(f"detected sun radius {r:.1f} px is beyond the {p} projection's domain")

@@ -281,7 +281,8 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
 
 
 def cameras_from_image(photo: LinearPhoto, sun_zenith_deg: float, sun_azimuth_deg: float,
-                       projections: Sequence[str] = CLASSICAL_PROJECTIONS) -> tuple[Circle, SunDetection | None, list[CameraGuess]]:
+                       projections: Sequence[str] = CLASSICAL_PROJECTIONS
+                       ) -> tuple[Circle, SunDetection | None, list[CameraGuess]]:
     """The camera from the image alone (:mod:`skyfit.camera.autocal`): the lens circle, the sky's symmetry axis, the
     sun, and one untilted camera per projection, best first (:func:`projection_decision` says which the sun cannot
     tell apart).
@@ -299,8 +300,10 @@ def cameras_from_image(photo: LinearPhoto, sun_zenith_deg: float, sun_azimuth_de
     circle = detect_circle(lum, photo.valid)
     inside = _disc(h, w, circle.cx, circle.cy, circle.radius) & photo.valid
     axis = symmetry_axis(lum, circle.cx, circle.cy, circle.radius, photo.valid)
-    detected = detect_sun(photo.darkest, photo.darkest_saturated, inside, centre=(circle.cx, circle.cy), axis_deg=axis)
-    candidates = cameras_from_sun((h, w), circle, detected, sun_zenith_deg, sun_azimuth_deg, projections=tuple(projections))
+    detected = detect_sun(photo.darkest, photo.darkest_saturated, inside, centre=(circle.cx, circle.cy),
+                          axis_deg=axis)
+    candidates = cameras_from_sun((h, w), circle, detected, sun_zenith_deg, sun_azimuth_deg,
+                                  projections=tuple(projections))
     return circle, detected, candidates
 
 
