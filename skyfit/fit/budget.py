@@ -75,13 +75,16 @@ DISCREPANCY_MODELS = ("floor", "sandwich", "larger")
 """``fit.sigma_discrepancy``: the discrepancy term's model (module docstring, term 2)."""
 DISCREPANCY_DEFAULT = "floor"
 """The default discrepancy model (docs/uncertainty.md, "Coverage under model error", says why)."""
-CLUSTERS = 24
-"""Target number of sandwich clusters per observation, 8 scattering-angle x 3 view-zenith bins
+CLUSTERS = 12
+"""Target number of sandwich clusters per observation, 6 scattering-angle x 2 view-zenith bins
 (:func:`sky_clusters`). The cluster-robust covariance has rank <= G - 1 and a relative spread of its
-variances of about sqrt(2 / (G - 1)) (0.30 at 24), so G must be well above the number of parameters
-(Cameron & Miller 2015, J. Human Resources 50, 317: unreliable below ~20-50 clusters); fewer, larger
-clusters hold more of a smooth error's correlation. 24 is the compromise on a sky of ~60 used samples
-(3 a cluster); docs/uncertainty.md compares 12 and 24 in the coverage study."""
+variances of about sqrt(2 / (G - 1)) (0.43 at 12), so G must exceed the number of free parameters
+(Cameron & Miller 2015, J. Human Resources 50, 317: unreliable with few clusters); fewer, larger
+clusters hold more of a smooth error's correlation. Measured (docs/uncertainty.md, "Coverage under
+model error", and tests/test_sigma_sandwich.py's scattering-angle error): 12 covers g better than 24
+(RMS z on the two-term skies 4.6 against 6.5, fit failures left out) with 6 free parameters on ~60 sky samples (5 a
+cluster). Raise it (``fit.sigma_clusters``) for fits with more free parameters; the budget notes when
+G - 1 < P."""
 MIN_PER_CLUSTER = 3
 """Fewest used samples per sandwich cluster: an observation with N samples gets min(G, N // 3) clusters,
 one per sample when that is < 2 (spectra at a few directions). [1]"""
@@ -374,8 +377,8 @@ def sky_clusters(problem: FitProblem, phys: dict, clusters: int = CLUSTERS, min_
     Per observation with N used samples, G = min(``clusters``, N // ``min_count``) clusters: the samples sorted by
     scattering angle (view direction against the sun, with the fitted sun offsets and camera tilts) are cut into
     n_theta equal-count bins, and each bin, sorted by view zenith, into n_zeta equal-count bins, with
-    n_zeta = max(1, round(sqrt(G / 3))) and n_theta = G // n_zeta (24: 8 x 3; a phase-function error follows
-    the scattering angle, an air-mass or profile error the zenith). When G < 2 (spectra at a few directions)
+    n_zeta = max(1, round(sqrt(G / 3))) and n_theta = G // n_zeta (12: 6 x 2, 24: 8 x 3; a phase-function
+    error follows the scattering angle, an air-mass or profile error the zenith). When G < 2 (spectra at a few directions)
     each sample is its own cluster. All channels of a sample share its label; labels run on over the
     observations (0 .. total - 1), so no cluster spans two observations.
 
@@ -638,6 +641,9 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
             sizes = torch.bincount(torch.cat(labels))
             budget["discrepancy"].update(clusters=int(sizes.numel()), form=sandwich_form, min_per_cluster=int(min_count),
                                          cluster_sizes=[int(sizes.min()), int(sizes.max())])
+            if sizes.numel() - 1 < P:
+                budget["discrepancy"]["note"] = (f"{sizes.numel()} clusters for {P} free parameters: the sandwich is singular "
+                                                 "along some directions (raise fit.sigma_clusters)")
             if discrepancy == "larger":
                 shares["larger"] = psd_part(loewner_upper(A_inv + shares["floor"], A_inv + shares["sandwich"]) - A_inv)
     budget["floor_relative"] = f if applicable else None
