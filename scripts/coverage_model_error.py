@@ -26,7 +26,8 @@ parameters, ``mie_g_forward_lobe`` scores the same fitted g against the forward 
 (= g on HG skies): on a two-term sky the asymmetry parameter is not what a one-term fit estimates.
 
     OMP_NUM_THREADS=1 nohup .venv/bin/python scripts/coverage_model_error.py --skies 20 \\
-        --out docs/uncertainty/coverage_model_error.json > coverage.log 2>&1 &
+        --compare sandwich:12,sandwich:24,sandwich:24:cr1,larger:12 --out run.json > coverage.log 2>&1 &
+    .venv/bin/python scripts/coverage_model_error.py --merge run.json --out docs/uncertainty/coverage_model_error.json
 
 The JSON is rewritten after every sky (per-sky rows and the running table), so a killed run
 keeps what it finished; ``--resume`` skips the skies already in it.
