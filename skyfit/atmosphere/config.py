@@ -363,7 +363,7 @@ def _lognormal_section(mie: dict, phase: str, lam: np.ndarray) -> dict | None:
 
 
 SHIPPED_CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-"""The configs shipped with skyfit (earth, earth_clear_sky_eval, earth_hazy, kider, mars)."""
+"""The configs shipped with skyfit (earth, earth_clear_sky_eval, earth_hazy, kider, kider_two_mode, mars)."""
 
 
 def read_config(config: str | Path | dict) -> tuple[dict, str]:
