@@ -37,6 +37,18 @@ def _t(deg: float) -> torch.Tensor:
     return torch.tensor(math.radians(deg), dtype=torch.float64)
 
 
+def sky_angles(cam, sun_zen: float, sun_az: float):
+    """(view vectors (H, W, 3) with zeros outside the circle, inside mask (H, W), scattering angle from the sun [deg],
+    view zenith angle [deg]) of every pixel of ``cam`` for a sun at (sun_zen, sun_az) [deg]."""
+    v, valid = cam.pixel_vectors()
+    valid = valid.numpy()
+    v = torch.where(torch.from_numpy(valid)[..., None], v, torch.zeros_like(v))
+    s = zenith_azimuth_to_enu(_t(sun_zen), _t(sun_az))
+    gam = np.degrees(np.arccos(np.clip((v @ s).numpy(), -1, 1)))
+    zen = np.degrees(np.arccos(np.clip(v[..., 2].numpy(), -1, 1)))
+    return v, valid, gam, zen
+
+
 def make_sky(shape=(240, 260), cx=137.3, cy=112.6, radius=100.0, projection="equidistant", heading=0.0,
              sun_zen=50.0, sun_az=140.0, *, sun_peak=30.0, sky_scale=1.0, skyline=None, dome_rim=False, overcast=False,
              streak=False, ghost=False, seed=0):
@@ -48,12 +60,7 @@ def make_sky(shape=(240, 260), cx=137.3, cy=112.6, radius=100.0, projection="equ
     sky) or 'green' (smooth, as bright as the sky, green) over azimuths 200-320° up to 8-15° elevation.
     """
     cam = FisheyeCamera(size=shape, projection=projection, cx=cx, cy=cy, radius=radius, up_azimuth_deg=heading)
-    v, valid = cam.pixel_vectors()
-    valid = valid.numpy()
-    v = torch.where(torch.from_numpy(valid)[..., None], v, torch.zeros_like(v))
-    s = zenith_azimuth_to_enu(_t(sun_zen), _t(sun_az))
-    gam = np.degrees(np.arccos(np.clip((v @ s).numpy(), -1, 1)))
-    zen = np.degrees(np.arccos(np.clip(v[..., 2].numpy(), -1, 1)))
+    v, valid, gam, zen = sky_angles(cam, sun_zen, sun_az)
     az = np.degrees(np.arctan2(v[..., 0].numpy(), v[..., 1].numpy())) % 360
     rng = np.random.default_rng(seed)
     if overcast:

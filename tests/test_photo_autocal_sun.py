@@ -20,7 +20,7 @@ import torch
 from skyfit.camera import CLASSICAL_PROJECTIONS, Circle, FisheyeCamera, SunDetection, cameras_from_sun, detect_sun
 from skyfit.camera.autocal import SUN_HOLE_MAX_PX, SUN_ZENITH_TOL_DEG, fill_small_holes, symmetry_axis
 from skyfit.fit.photo import projection_decision
-from skyfit.geometry import zenith_azimuth_to_enu
+from test_autocal import sky_angles
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 CX, CY, RADIUS, SHAPE = 131.4, 118.2, 105.0, (240, 260)
@@ -46,12 +46,7 @@ def sky_photo(projection="stereographic", sun_zen=68.0, sun_az=130.0, heading=35
         camera, rgb (H, W, 3), saturated (H, W), inside the circle (H, W), the sun's pixel (x, y).
     """
     cam = FisheyeCamera(size=SHAPE, projection=projection, cx=CX, cy=CY, radius=RADIUS, up_azimuth_deg=heading)
-    v, valid = cam.pixel_vectors()
-    valid = valid.numpy()
-    v = torch.where(torch.from_numpy(valid)[..., None], v, torch.zeros_like(v))
-    s = zenith_azimuth_to_enu(_t(sun_zen), _t(sun_az))
-    gam = np.degrees(np.arccos(np.clip((v @ s).numpy(), -1, 1)))
-    zen = np.degrees(np.arccos(np.clip(v[..., 2].numpy(), -1, 1)))
+    v, valid, gam, zen = sky_angles(cam, sun_zen, sun_az)
     rng = np.random.default_rng(seed)
     if overcast:
         lum = 0.5 * (1 + 0.5 * np.cos(np.radians(zen)))
