@@ -228,3 +228,19 @@ def test_laplace_sigma_of_the_derived_alpha_g_ssa():
                        - p.lognormal_derived(p.to_physical(x0 - e))[name]) / (2 * h)
         assert d["sigma"] == pytest.approx(math.sqrt(float(grad @ cov @ grad)), rel=1e-4)
         assert d["sigma"] > 0
+
+
+def test_lut_summary_round_trip_keeps_the_coarse_mode():
+    """export-lut's lut.json atmosphere summary rebuilds the two-mode aerosol: the same coarse mode and phase."""
+    from skyfit.export.lut import _atmosphere_from_summary
+    from skyfit.scattering import spectral_mie_phase
+
+    atm = atmosphere_from_config(_bcfg(), [450.0, 550.0])
+    back = _atmosphere_from_summary(atm.summary(), D64, "cpu")
+    assert back.mie_coarse_mode is not None
+    assert float(back.mie_fine_fraction) == pytest.approx(0.6) and float(back.mie_coarse_radius) == pytest.approx(0.7e-6)
+    nu = _t([-0.5, 0.5, 0.999])
+    torch.testing.assert_close(spectral_mie_phase(nu, back), spectral_mie_phase(nu, atm))
+    # and the coarse mode changes the phase (the round trip is not of a one-mode aerosol)
+    one = atmosphere_from_config(_lcfg(r_um=0.09, sigma=1.6), [450.0, 550.0])
+    assert not torch.allclose(spectral_mie_phase(nu, one), spectral_mie_phase(nu, back), rtol=1e-3)
