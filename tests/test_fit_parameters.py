@@ -213,5 +213,8 @@ def test_a_fitted_value_on_a_bound_rebuilds():
         assert abs(back - v) <= 1e-11 * (spec.hi - spec.lo) + BOUND_EDGE * spec.hi * 30
     assert inside_bounds("mie_g2", -0.3) == -0.3 and inside_bounds("mie_g", [0.5, 0.7]) == [0.5, 0.7]
     assert inside_bounds("exposure", 0.0) == 0.0  # unbounded transforms are left to their own checks
+    # a range whose upper bound depends on the data: inside values pass unchanged, the lower bound moves inside
+    assert inside_bounds("ground_albedo_scale", 1.3) == 1.3
+    assert 0.0 < inside_bounds("ground_albedo_scale", 0.0) < 1e-9
     with pytest.raises(FitError, match="open interval"):
         PARAMETERS["mie_g2"].inverse(0.0)

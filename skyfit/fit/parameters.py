@@ -133,13 +133,13 @@ def inside_bounds(name: str, v):
     if spec is None or spec.transform not in ("interval", "loginterval") or not isinstance(v, (int, float)):
         return v
     lo, hi = spec.lo, spec.hi
-    if not math.isfinite(hi):  # a data-dependent upper bound (ground_albedo_scale): the lower one only
-        return lo + (BOUND_EDGE if v == lo else 0.0) if spec.transform == "interval" else v
-    if spec.transform == "interval":
-        u = BOUND_EDGE if v == lo else 1.0 - BOUND_EDGE if v == hi else None
-        return v if u is None else lo + (hi - lo) * u
     u = BOUND_EDGE if v == lo else 1.0 - BOUND_EDGE if v == hi else None
-    return v if u is None else lo * math.exp(math.log(hi / lo) * u)
+    if u is None:
+        return v
+    if not math.isfinite(hi):  # a data-dependent upper bound (ground_albedo_scale): only the lower one is reached
+        return lo + BOUND_EDGE
+    return lo + (hi - lo) * u if spec.transform == "interval" else lo * math.exp(math.log(hi / lo) * u)
+
 
 PARAMETERS: dict[str, ParameterSpec] = {
     s.name: s
