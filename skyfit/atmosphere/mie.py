@@ -273,9 +273,8 @@ def lognormal_mie_optics(wavelengths_nm: Tensor, median_radius: Tensor, geometri
     retrieves every site's aerosol as two such modes (Dubovik et al. 2002): the fine mode sets the Angstrom
     exponent, the coarse mode the aureole's forward peak, which one mode cannot give both of.
     """
-    fine = mode_mie_optics(wavelengths_nm, median_radius, geometric_sigma, refractive_index)
     if coarse is None:
-        return fine
+        return mode_mie_optics(wavelengths_nm, median_radius, geometric_sigma, refractive_index)
     rc, sc, eta = coarse
     dt, dev = median_radius.dtype, median_radius.device
     r_val = float(rc.detach())
@@ -285,10 +284,12 @@ def lognormal_mie_optics(wavelengths_nm: Tensor, median_radius: Tensor, geometri
     e_val = float(eta.detach())
     if not (math.isfinite(e_val) and 0.0 <= e_val <= 1.0):
         raise ValueError(f"fine-mode fraction must be in [0, 1], got {e_val:g}")
-    ref = torch.tensor([550.0], dtype=dt, device=dev)
-    crs = mode_mie_optics(wavelengths_nm, rc.to(dtype=dt, device=dev), sc, refractive_index)
-    c550_f = mode_mie_optics(ref, median_radius, geometric_sigma, refractive_index).extinction[0]
-    c550_c = mode_mie_optics(ref, rc.to(dtype=dt, device=dev), sc, refractive_index).extinction[0]
+    # each mode once, on the wavelengths and 550 nm (the reference of eta), sliced apart
+    lam = torch.cat([wavelengths_nm.to(dtype=dt, device=dev).reshape(-1), wavelengths_nm.new_tensor([550.0]).to(dt)])
+    fine_all = mode_mie_optics(lam, median_radius, geometric_sigma, refractive_index)
+    crs_all = mode_mie_optics(lam, rc.to(dtype=dt, device=dev), sc, refractive_index)
+    fine, crs = (_optics_slice(o, slice(None, -1)) for o in (fine_all, crs_all))
+    c550_f, c550_c = fine_all.extinction[-1], crs_all.extinction[-1]
     eta = eta.to(dtype=dt, device=dev).reshape(())
     n_f, n_c = eta / c550_f, (1.0 - eta) / c550_c
     n = n_f + n_c
@@ -302,6 +303,12 @@ def lognormal_mie_optics(wavelengths_nm: Tensor, median_radius: Tensor, geometri
         phase=(s_f.unsqueeze(-1) * fine.phase + s_c.unsqueeze(-1) * crs.phase) / s_tot.unsqueeze(-1),
         cosines=fine.cosines,
     )
+
+
+def _optics_slice(o: LognormalOptics, s: slice) -> LognormalOptics:
+    """The optics of the wavelengths ``s`` of ``o``."""
+    return LognormalOptics(extinction=o.extinction[s], scattering=o.scattering[s], ssa=o.ssa[s],
+                           asymmetry=o.asymmetry[s], phase=o.phase[s], cosines=o.cosines)
 
 
 def mode_mie_optics(wavelengths_nm: Tensor, median_radius: Tensor, geometric_sigma: Tensor,
