@@ -16,6 +16,10 @@ camera tilt). Variants:
 - ``mie2``: + a coarse mode (its median radius and the fine-mode fraction of the 550 nm extinction free, its
   sigma_g 1.9); ``mie2_bl``: that + the boundary layer;
 - any of them + ``_o``: + the orientation nuisances of docs/kider.md (a) (sun zenith offset, two tilts);
+- any of them + ``_t``: one tilt of the scanner's axis for the whole day (issue 14 item 4): the joint fit frees
+  ``camera_tilt_north`` and ``camera_tilt_east`` once for all captures (exposure and heading stay per capture),
+  warm-started at the variant's fits without ``_t``; the per-capture fits and the cross predictions then hold the
+  tilt at the joint fit's value (run ``--stage joint`` first);
 - any of them + ``_b``: multiple scattering from Bruneton's 4 orders (``multiple: bruneton_lagged``) instead of
   the config's Hillaire LUT.
 
@@ -72,24 +76,46 @@ ORIENTATION = ["sun_zenith_offset", "camera_tilt_north", "camera_tilt_east"]
 offset, two tilts of the scanner's axis), to show what each rung gains with and without them."""
 
 
-def _parse(v: str) -> tuple[str, bool, bool]:
-    base, b, o = v, False, False
-    while base.endswith(("_b", "_o")) and base not in VARIANTS:
-        b, o = b or base.endswith("_b"), o or base.endswith("_o")
+TILT = ["camera_tilt_north", "camera_tilt_east"]
+"""Suffix ``_t``: the scanner's tilt, one for the day (shared by the joint fit's captures)."""
+
+
+def _parse(v: str) -> tuple[str, bool, bool, bool]:
+    base, b, o, t = v, False, False, False
+    while base.endswith(("_b", "_o", "_t")) and base not in VARIANTS:
+        b, o, t = b or base.endswith("_b"), o or base.endswith("_o"), t or base.endswith("_t")
         base = base[:-2]
     if base not in VARIANTS:
-        raise SystemExit(f"unknown variant {v!r}: one of {', '.join(VARIANTS)}, each optionally with _b (Bruneton) "
-                         "and/or _o (+ the orientation nuisances)")
-    return base, b, o
+        raise SystemExit(f"unknown variant {v!r}: one of {', '.join(VARIANTS)}, each optionally with _b (Bruneton), "
+                         "_o (+ the orientation nuisances) and/or _t (one tilt for the day)")
+    if o and t:
+        raise SystemExit(f"variant {v!r}: _o (a tilt per capture) and _t (one for the day) exclude each other")
+    return base, b, o, t
+
+
+def _untilted(v: str) -> str:
+    """The variant without its ``_t`` suffix (the joint fit's warm start)."""
+    return "_".join(p for p in v.split("_") if p != "t") if v not in VARIANTS else v
+
+
+def day_tilt(work: Path, v: str) -> dict:
+    """The joint fit's tilt of a ``_t`` variant, for the per-capture fits and predictions to hold fixed."""
+    jp = work / f"{v}_joint.json"
+    if not jp.exists():
+        raise SystemExit(f"{jp} missing: a _t variant's fits hold the day's tilt fixed; run --stage joint first")
+    par = json.loads(jp.read_text())["parameters"]
+    return {n: float(par[n]) for n in TILT}
 
 
 def variant_config(v: str) -> dict:
     from skyfit.atmosphere import load_yaml
 
-    base, bruneton, orientation = _parse(v)
+    base, bruneton, orientation, tilt = _parse(v)
     cfg = copy.deepcopy(load_yaml(str(CONFIG)))
     add, drop = VARIANTS[base]
     cfg["fit"]["free"] = [n for n in ATMOSPHERE if n not in drop] + add + NUISANCE + (ORIENTATION if orientation else [])
+    if tilt:  # the tilt is shared: only exposure and heading take a value per capture
+        cfg["fit"]["per_observation"] = list(NUISANCE)
     if bruneton:
         cfg["fit"].update(BRUNETON)
     return cfg
@@ -99,6 +125,8 @@ def stage_fits(work: Path, v: str, only: list[str] | None) -> None:
     from skyfit.fit.run import run_fit
 
     cfg = variant_config(v)
+    if _parse(v)[3]:
+        cfg["fit"]["initial"] = {**cfg["fit"].get("initial", {}), **day_tilt(work, v)}
     for cap in _captures():
         name = _short(cap)
         out = work / f"{v}_{name}.json"
@@ -124,12 +152,15 @@ def stage_joint(work: Path, v: str, max_iter: int = 300) -> None:
         return
     cfg = variant_config(v)
     caps = _captures()
-    fits = [work / f"{v}_{_short(c)}.json" for c in caps]
+    tilt = _parse(v)[3]
+    if tilt:
+        cfg["fit"]["free"] += TILT
+    fits = [work / f"{_untilted(v) if tilt else v}_{_short(c)}.json" for c in caps]
     overrides: dict = {"max_iter": max_iter}
     if all(f.exists() for f in fits):
         per = [json.loads(f.read_text())["parameters"] for f in fits]
         overrides["initial"] = {n: ([p[n] for p in per] if PARAMETERS[n].nuisance else float(np.median([p[n] for p in per])))
-                                for n in cfg["fit"]["free"]}
+                                for n in cfg["fit"]["free"] if n not in TILT or not tilt}
     t0 = time.process_time()
     res = run_fit(caps, cfg, out, config_source=str(CONFIG), plots=False, progress=True, overrides=overrides)
     cpu = time.process_time() - t0
@@ -153,9 +184,35 @@ def axis_heading(cap: Path) -> float:
     return math.atan2(math.sin(d), math.cos(d))
 
 
+def _hours(res: dict) -> float:
+    """A result's capture time in hours of its local day."""
+    import datetime
+
+    t = datetime.datetime.fromisoformat(res["data"][0]["time"])
+    return t.hour + t.minute / 60 + t.second / 3600
+
+
+def drift_heading(work: Path, v: str, target: str) -> float:
+    """The scanner's heading at the target's time from its drift over the day, without the target's data [rad]:
+    a straight line in time through the headings fitted on every other capture (``{v}_HH.MM.json``). The
+    heading of the Kider scanner drifts by about -4 deg/h (docs/data.md); Bruneton's evaluation met it too."""
+    times, heads, t_target = [], [], None
+    for cap in _captures():
+        name = _short(cap)
+        res = json.loads((work / f"{v}_{name}.json").read_text())
+        if name == target:
+            t_target = _hours(res)
+            continue
+        times.append(_hours(res))
+        heads.append(float(res["parameters"]["sun_azimuth_offset"]))
+    return float(np.polyval(np.polyfit(times, heads, 1), t_target))
+
+
 def stage_cross(work: Path, v: str, sources: list[str]) -> None:
-    """Each source's fit predicts every other capture as is, with the heading measured on the target's own
-    symmetry axis (no fit: ``axis``), and with exposure and heading re-estimated."""
+    """Each source's fit predicts every other capture as is; with the heading measured on the target's own
+    symmetry axis (no fit: ``axis``); with the heading from the scanner's drift line through the other captures'
+    fitted headings (``drift``: leave-one-out, nothing of the target's data); and with exposure and heading
+    re-estimated (``refit``)."""
     import tempfile
 
     from skyfit.fit.run import run_evaluate
@@ -165,7 +222,8 @@ def stage_cross(work: Path, v: str, sources: list[str]) -> None:
         path = work / f"{v}_{src}.json"
         if not path.exists():
             raise SystemExit(f"{path} missing: run --stage fits first")
-        for mode in ("asis", "axis", "refit"):
+        # with a day tilt the symmetry axis is not the model's heading: no axis mode
+        for mode in ("asis", "drift", "refit") if _parse(v)[3] else ("asis", "axis", "drift", "refit"):
             out = work / f"{v}_cross_{src}_{mode}.json"
             done = json.loads(out.read_text()) if out.exists() else {}
             for cap in caps:
@@ -173,9 +231,9 @@ def stage_cross(work: Path, v: str, sources: list[str]) -> None:
                 if name == src or name in done:
                     continue
                 source = path
-                if mode == "axis":  # the source's atmosphere and exposure, the target's heading from its symmetry axis
+                if mode in ("axis", "drift"):  # the source's atmosphere and exposure, the target's heading measured
                     res = json.loads(path.read_text())
-                    res["parameters"]["sun_azimuth_offset"] = axis_heading(cap)
+                    res["parameters"]["sun_azimuth_offset"] = axis_heading(cap) if mode == "axis" else drift_heading(work, v, name)
                     tmp = Path(tempfile.mkdtemp()) / path.name
                     tmp.write_text(json.dumps(res))
                     source = tmp
@@ -216,7 +274,7 @@ def stage_report(work: Path, variants: list[str], orientation_work: Path) -> Non
         if jp.exists():
             j = json.loads(jp.read_text())
             entry["joint"] = {"rmse": j["metrics"]["rmse"], "per": [p["rmse"] for p in j["metrics"]["per_observation"]]}
-        for mode in ("asis", "axis", "refit"):
+        for mode in ("asis", "axis", "drift", "refit"):
             per_src = {}
             for f in work.glob(f"{v}_cross_*_{mode}.json"):
                 d = json.loads(f.read_text())
@@ -250,6 +308,7 @@ def stage_report(work: Path, variants: list[str], orientation_work: Path) -> Non
         print(f"| **{label}** | " + " | ".join(vals) + " |")
     for key, label in (("joint", "joint day fit"), ("cross_refit", "fit one, predict the others, exposure + heading re-estimated"),
                        ("cross_axis", "fit one, predict the others, heading from the target's symmetry axis (no fit)"),
+                       ("cross_drift", "fit one, predict the others, heading from the day's drift line without the target (no fit)"),
                        ("cross_asis", "fit one, predict the others, as is")):
         vals = []
         for v in cols:

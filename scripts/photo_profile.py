@@ -82,7 +82,7 @@ def main(argv=None) -> int:
                "gains": [r.result["camera"].get("gain_red"), r.result["camera"].get("gain_blue")],
                "convergence": {k: r.result.get("convergence", {}).get(k) for k in ("ms_refreshes", "ms_table_builds", "ms_factor_change",
                                                                                    "iterations", "evaluations")},
-               "settings": args.set}
+               "sun_sep_deg": r.result["sun"]["separation_deg"], "settings": args.set}
         print(json.dumps(row), flush=True)
         if args.json:
             with open(args.json, "a") as fh:

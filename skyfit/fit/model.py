@@ -186,6 +186,15 @@ def channel_matrix(model_wavelengths: Tensor, obs: Observation) -> Tensor:
     return hit.to(lam.dtype)
 
 
+def tilt_directions(d: Tensor, tilt_north: Tensor, tilt_east: Tensor) -> Tensor:
+    """Instrument directions (..., 3) in the world frame of an instrument whose zenith axis is tilted by
+    ``tilt_north`` toward North and ``tilt_east`` toward East: R_y(tilt_east) R_x(-tilt_north) d (ENU axes). [rad]"""
+    cn, sn, ce, se = torch.cos(tilt_north), torch.sin(tilt_north), torch.cos(tilt_east), torch.sin(tilt_east)
+    x, y, z = d.unbind(-1)
+    y1, z1 = y * cn + z * sn, -y * sn + z * cn  # R_x(-tilt_north): the zenith goes to (0, sn, cn)
+    return torch.stack([x * ce + z1 * se, y1, -x * se + z1 * ce], -1)  # R_y(tilt_east)
+
+
 class FitProblem:
     """Observations sharing one atmosphere, each with its own sun and nuisance values.
 
@@ -235,14 +244,10 @@ class FitProblem:
         unlike a sun zenith offset: every view moves with it, horizon and sun alike.
         """
         o = self.observations[i]
-        d = o.directions[o.mask]
         tn, te = phys["camera_tilt_north"], phys["camera_tilt_east"]
         if tn.ndim:
             tn, te = tn[i], te[i]
-        cn, sn, ce, se = torch.cos(tn), torch.sin(tn), torch.cos(te), torch.sin(te)
-        x, y, z = d.unbind(-1)
-        y1, z1 = y * cn + z * sn, -y * sn + z * cn  # R_x(-tilt_north): the zenith goes to (0, sn, cn)
-        return torch.stack([x * ce + z1 * se, y1, -x * se + z1 * ce], -1)  # R_y(tilt_east)
+        return tilt_directions(o.directions[o.mask], tn, te)
 
     def spectra(self, phys: dict, atm: Atmosphere | None = None) -> list[Tensor]:
         """Model spectral radiance for every used sample of each observation (N_i, W), no exposure."""

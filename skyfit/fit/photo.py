@@ -50,7 +50,7 @@ from ..camera.masks import SUN_MASK_MAX_DEG, grow_outlier_mask, obstacle_mask, s
 from ..camera.sun import parse_location, parse_time, sun_position
 from ..io.photo import LinearPhoto, read_photo
 from .data import Observation
-from .model import FitProblem
+from .model import FitProblem, tilt_directions
 from .optimise import fit as optimise
 from .problem import fit_settings, make_model, prepare
 
@@ -484,26 +484,91 @@ def camera_priors(free: Sequence[str]) -> dict:
     return {n: table[n] for n in free if n in table}
 
 
+SUN_DATUM_SIGMA_DEG = 0.3
+"""Standard error of the sun's detected position as a datum of the fit when found as a compact saturated core or
+an unsaturated peak: on the 20 synthetic photos such detections lie 0.02-0.73 deg from the true sun (docs/photos.md,
+"The sun in a single photo"), the sun's own radius is 0.27 deg. [deg]"""
+
+
+@dataclasses.dataclass(frozen=True)
+class SunDatum:
+    """The sun's detected image position as a measurement of the camera's orientation.
+
+    Attributes:
+        direction: the detected pixel's view direction under the scene's camera (the frame of the fit's
+            view directions before the fitted tilt), shape (3,). [unit vector]
+        sigma_deg: its standard error (:func:`sun_datum`). [deg]
+    """
+
+    direction: torch.Tensor
+    sigma_deg: float
+
+
+def sun_datum(cam: FisheyeCamera, det: SunDetection | None) -> SunDatum | None:
+    """The detected sun as a datum of the fit: its direction under ``cam`` and its standard error.
+
+    A compact core or a peak: :data:`SUN_DATUM_SIGMA_DEG`. A sun placed in a saturated aureole (``extended``)
+    lies within ``radius_px`` of the detected point toward the zenith (:func:`skyfit.camera.autocal.detect_sun`):
+    half the angle that span subtends, at least :data:`SUN_DATUM_SIGMA_DEG`. None without a detection.
+    """
+    if det is None:
+        return None
+    f64 = torch.float64
+    with torch.no_grad():
+        u = cam.pixel_to_direction(torch.tensor(det.x, dtype=f64), torch.tensor(det.y, dtype=f64))
+        sigma = SUN_DATUM_SIGMA_DEG
+        if det.extended and det.radius_px > 0:
+            dx, dy = float(cam.cx) - det.x, float(cam.cy) - det.y
+            norm = math.hypot(dx, dy)
+            if norm > 0:
+                step = min(det.radius_px, norm) / norm
+                v = cam.pixel_to_direction(torch.tensor(det.x + dx * step, dtype=f64), torch.tensor(det.y + dy * step, dtype=f64))
+                sigma = max(sigma, 0.5 * _angle_deg(u.numpy(), v.numpy()))
+    return SunDatum(u, sigma)
+
+
 class PhotoProblem(FitProblem):
-    """A photo's :class:`FitProblem` with Gaussian priors on camera nuisances (:func:`camera_priors`).
+    """A photo's :class:`FitProblem` with Gaussian priors on camera nuisances (:func:`camera_priors`) and the
+    sun's detected position as a datum (:func:`sun_datum`).
 
     The objective (the mean loss per element) adds sum 0.5 ((f(v) - mean) / sigma)^2 / n_elements over the
     priors, f the identity or log: the negative log prior on the scale of the loss (which is a negative
-    log-likelihood, Cauchy or squared), so the Laplace covariance is the posterior's.
+    log-likelihood, Cauchy or squared), so the Laplace covariance is the posterior's. The sun datum adds
+    0.5 (c / sigma)^2 / n_elements, c the chord between the detected pixel's view direction (tilted by the fitted
+    tilt) and the fitted sun (its azimuth plus the fitted heading): the angle between them for small angles, and
+    smooth at 0 where the angle's gradient is not. Without it the sky pattern alone places the camera, and a short
+    fit can trade the heading and tilt against the aerosol and vignetting (docs/photos.md).
     """
 
     priors: dict = {}
+    sun: SunDatum | None = None
 
     @classmethod
-    def of(cls, problem: FitProblem, priors: dict) -> "PhotoProblem":
-        """The same problem (shared observations, parameterisation and model) with ``priors``."""
+    def of(cls, problem: FitProblem, priors: dict, sun: SunDatum | None = None) -> "PhotoProblem":
+        """The same problem (shared observations, parameterisation and model) with ``priors`` and the sun datum."""
         out = cls.__new__(cls)
         out.__dict__.update(problem.__dict__)
         for n, (kind, _, sigma) in priors.items():
             if kind not in ("linear", "log") or not sigma > 0:
                 raise ValueError(f"prior of {n}: kind must be linear or log and sigma > 0, got {kind!r}, {sigma}")
+        if sun is not None and not sun.sigma_deg > 0:
+            raise ValueError(f"sun datum: sigma must be > 0 deg, got {sun.sigma_deg}")
         out.priors = dict(priors)
+        out.sun = sun
         return out
+
+    def sun_penalty(self, phys: dict) -> torch.Tensor:
+        """Negative log likelihood of the sun datum (up to a constant), shape (). [1]"""
+        tn, te = phys["camera_tilt_north"], phys["camera_tilt_east"]
+        if tn.ndim:
+            tn, te = tn[0], te[0]
+        d = self.sun.direction.to(dtype=tn.dtype, device=tn.device)
+        view = tilt_directions(d, tn, te)
+        sun = self.sun_vectors(phys, 0)
+        if sun.ndim == 2:
+            sun = sun[0]
+        chord = torch.linalg.vector_norm(view - sun)
+        return 0.5 * (chord / math.radians(self.sun.sigma_deg)) ** 2
 
     def prior_penalty(self, phys: dict) -> torch.Tensor:
         """Negative log prior of the camera's nuisances (up to a constant), shape (). [1]"""
@@ -519,6 +584,8 @@ class PhotoProblem(FitProblem):
         loss = super().loss_from_predictions(preds, phys)
         if self.priors:
             loss = loss + self.prior_penalty(phys) / max(self.n_elements, 1)
+        if self.sun is not None:
+            loss = loss + self.sun_penalty(phys) / max(self.n_elements, 1)
         return loss
 
 
@@ -634,10 +701,11 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
             settings = dataclasses.replace(settings, orders=1)
         prep = prepare([obs], config, settings, device=device)
         problem = PhotoProblem.of(prep.problem(settings.free, settings.per_observation, {**settings.initial, **(start or {})}),
-                                  camera_priors(settings.free))
+                                  camera_priors(settings.free), sun_datum(sc.camera, sc.detected_sun))
         options = settings.options(progress)
-        if problem.priors and getattr(options, "method", None) not in (None, "lbfgs"):
-            options = dataclasses.replace(options, method="lbfgs")  # the priors live in the objective, not in residuals
+        if (problem.priors or problem.sun is not None) and getattr(options, "method", None) not in (None, "lbfgs"):
+            # the priors and the sun datum live in the objective, not in residuals
+            options = dataclasses.replace(options, method="lbfgs")
         res = lagged_fit(problem, options, refreshes, bruneton=bruneton, tables=tables, refresh_last=refresh_last)
         shared["builds"] = shared.get("builds", 0) + getattr(problem, "table_builds", 0)
         return blocks, prep, problem, res
@@ -1105,7 +1173,7 @@ def report_png(pf: PhotoFit, path: str | Path) -> Path:
 
 
 __all__ = [
-    "BlockImage", "CALIBRATED_FREE", "GAIN_PRIOR_LOG_SIGMA", "PHOTO_FREE", "PhotoProblem", "VIGNETTING_PRIOR", "camera_priors", "PHOTO_SETTINGS", "PhotoFit", "PhotoFitError", "PhotoScene",
+    "BlockImage", "CALIBRATED_FREE", "SUN_DATUM_SIGMA_DEG", "SunDatum", "sun_datum", "GAIN_PRIOR_LOG_SIGMA", "PHOTO_FREE", "PhotoProblem", "VIGNETTING_PRIOR", "camera_priors", "PHOTO_SETTINGS", "PhotoFit", "PhotoFitError", "PhotoScene",
     "block_image", "block_observation", "camera_from_dict", "camera_from_result", "fit_photo", "fit_scene",
     "fitted_camera", "prepare_scene", "read_camera", "read_sensitivities", "report_png", "scaled_camera", "scene_masks",
 ]
