@@ -264,7 +264,7 @@ pixels would take most of an hour on 2 CPU cores. Its widths are those of the su
 subsample is what it checks."""
 PILOT_STEPS = 150
 """The pilot chain's length; the chain then grows to :data:`MIN_STEPS_PER_TAU` x its tau (:func:`chain_steps`)."""
-MAX_SAMPLE_STEPS = 3000
+MAX_SAMPLE_STEPS = 6000
 """The demo's chain stops growing here (then it says that it is short of the tau rule)."""
 TAU_MARGIN = 1.2
 """Steps asked for = margin x 50 x the running tau: tau estimates from short chains run low."""
