@@ -157,8 +157,8 @@ def test_reference_model_adds_bruneton_orders_to_converged_single_scattering():
     assert small.settings()["table_orders"] == 3
 
 
-@pytest.mark.parametrize("tau, done, expected", [(16.5, 150, 990), (100.0, 150, 3000), (1.0, 150, 151),
-                                                 (float("nan"), 150, 3000)])
+@pytest.mark.parametrize("tau, done, expected", [(16.5, 150, 990), (72.0, 150, 4320), (100.0, 150, 6000), (1.0, 150, 151),
+                                                 (float("nan"), 150, 6000)])
 def test_demo_chain_steps_follow_the_tau_rule(tau, done, expected):
     """1.2 x 50 tau steps, at least one more than done, at most the cap."""
     assert chain_steps(tau, done) == expected
