@@ -186,6 +186,11 @@ def channel_matrix(model_wavelengths: Tensor, obs: Observation) -> Tensor:
     return hit.to(lam.dtype)
 
 
+def aerosol_log_depth(atm: Atmosphere) -> Tensor:
+    """ln of the aerosol's vertical optical depth at each of the atmosphere's wavelengths, shape (W,). [1]"""
+    return torch.log(atm.mie_extinction * atm.mie_column_height)
+
+
 def tilt_directions(d: Tensor, tilt_north: Tensor, tilt_east: Tensor) -> Tensor:
     """Instrument directions (..., 3) in the world frame of an instrument whose zenith axis is tilted by
     ``tilt_north`` toward North and ``tilt_east`` toward East: R_y(tilt_east) R_x(-tilt_north) d (ENU axes). [rad]"""
@@ -228,6 +233,9 @@ class FitProblem:
         self.frozen_factor: list[Tensor] | None = None
         """Per observation, a factor (N_i, W) on the rendered radiance: all orders over the first, computed
         elsewhere and held fixed (:func:`skyfit.fit.photo.lagged_fit` with Bruneton's tables). [1]"""
+        self.frozen_slope: tuple[list[Tensor], Tensor] | None = None
+        """(D per observation (N_i, W), ln tau_0 (W,)): the frozen factor's first-order dependence on the aerosol
+        optical depth (:meth:`frozen_factor_at`), or None (held fixed)."""
 
     # -- forward ----------------------------------------------------------------
     def sun_vectors(self, phys: dict, i: int) -> Tensor:
@@ -249,6 +257,20 @@ class FitProblem:
             tn, te = tn[i], te[i]
         return tilt_directions(o.directions[o.mask], tn, te)
 
+    def frozen_factor_at(self, atm: Atmosphere, i: int) -> Tensor:
+        """Observation i's frozen multiple-scattering factor F (N_i, W), followed to first order in the aerosol
+        optical depth when :attr:`frozen_slope` = (D, ln tau_0(lambda)) is set: F = 1 + (F_0 - 1) (tau(lambda) /
+        tau_0(lambda))^D, D the logarithmic derivative of the multiple-over-single ratio per sample and wavelength
+        (:func:`skyfit.fit.photo.aod_slope`) and tau(lambda) the aerosol's optical depth at each wavelength
+        (extinction x column height). Radiative transfer is monochromatic, so F at a wavelength follows that
+        wavelength's optical depth: one slope covers the AOD and the Angstrom exponent alike. The fit then sees how
+        the multiple scattering's share grows with the aerosol, which a factor held fixed hides. [1]"""
+        f = self.frozen_factor[i]
+        if self.frozen_slope is None:
+            return f
+        slope, log_tau0 = self.frozen_slope
+        return 1.0 + (f - 1.0) * torch.exp(slope[i] * (aerosol_log_depth(atm) - log_tau0))
+
     def spectra(self, phys: dict, atm: Atmosphere | None = None) -> list[Tensor]:
         """Model spectral radiance for every used sample of each observation (N_i, W), no exposure."""
         atm = self.param.atmosphere(phys) if atm is None else atm
@@ -263,7 +285,7 @@ class FitProblem:
                 sun = sun[o.mask]
             rad = renderers[o.altitude_m](self.view_directions(phys, i), sun)
             if self.frozen_factor is not None:
-                rad = rad * self.frozen_factor[i]
+                rad = rad * self.frozen_factor_at(atm, i)
             out.append(rad * self.solar_scale[i])
         return out
 
