@@ -240,6 +240,7 @@ def refit_shift(problem: FitProblem, x: Tensor, reference: FitProblem, x_start: 
         factor = reference_factor(problem, reference, xk)
         lagged = copy.copy(problem)
         lagged.frozen_factor = factor
+        lagged.frozen_slope = None  # c_k held as it is (a photo fit's first-order following is for its own factor)
         xn = fit(lagged, opt, x0=xk).x.detach()
         step = float(((xn - xk).abs().to(torch.float64) / sigma_x.clamp_min(1e-300)).max())
         steps.append(step)
@@ -558,6 +559,7 @@ def numerical_term(problem: FitProblem, x: Tensor, lap: dict, *, reference: SkyM
             budget["numerical_tail"] = {n: float(t) for n, t in zip(names, transform_jacobian(problem, x.to(torch.float64)) * tail)}
             lagged = copy.copy(problem)
             lagged.frozen_factor = rs["factor"]
+            lagged.frozen_slope = None
     with torch.no_grad():
         if lagged is not None:  # the refit's own model: m_fit c_k
             m_cor = lagged.predict(x + dx.to(x.dtype))
