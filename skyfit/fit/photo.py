@@ -62,8 +62,12 @@ TARGET_SAMPLES = 1000
 QUICK_SAMPLES = 400
 """Blocks of the short fits that choose among projections or starting headings."""
 MS_REFRESHES = 6
-"""At most this many fits with the multiple-scattering tables frozen and refreshed (:func:`lagged_fit`): from the
-default AOD 0.1 a hazy sky's 0.3 takes two trust-region steps (:data:`MS_AOD_TRUST`) and two or three to settle."""
+"""At most this many fits with the multiple-scattering tables frozen and refreshed (:func:`lagged_fit`) in a photo
+fit: from the default AOD 0.1 a hazy sky's 0.3 takes two trust-region steps (:data:`MS_AOD_TRUST`) and two or three
+to settle."""
+LAGGED_REFRESHES = 3
+"""The same for ``multiple: bruneton_lagged`` in ``skyfit fit`` of other data (no :class:`PhotoProblem`: the factor
+held fixed between refreshes, which stop when it changes by < 1 %)."""
 PHOTO_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "gain_red", "gain_blue", "vignetting",
               "sun_azimuth_offset", "camera_tilt_north", "camera_tilt_east")
 """Free parameters of a photo fit: the aerosol and the camera's nuisances. Rayleigh's scale stays at the

@@ -59,9 +59,9 @@ def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overri
           device=str(device), hint="reduce --max-samples, --view-samples, the --integrator's samples, --starts, --max-iter or --adam-steps, "
                "or add --force")
     if problem.model.lagged:  # Bruneton's orders >= 2 as a factor, frozen per fit and refreshed at its result
-        from .photo import lagged_fit
+        from .photo import LAGGED_REFRESHES, lagged_fit
 
-        res = lagged_fit(problem, s.options(progress), bruneton=problem.model.factor_model())
+        res = lagged_fit(problem, s.options(progress), LAGGED_REFRESHES, bruneton=problem.model.factor_model())
     else:
         res = fit(problem, s.options(progress))
     return write_result(problem, res, out, command="fit", settings=dataclasses.asdict(s), config=config,
