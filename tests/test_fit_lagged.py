@@ -118,3 +118,26 @@ def test_followed_factor_tracks_the_rebuilt_one(sky, change):
     err_followed = torch.quantile(((followed - 1.0) / (rebuilt - 1.0) - 1.0).abs().flatten(), q)
     assert bool((err_frozen > 0.1).all())  # the multiple share does move with the aerosol
     assert bool((err_followed < 0.25 * err_frozen).all())
+
+
+def test_trust_region_penalises_only_outside(sky):
+    """The photo fit's trust region in the AOD adds TRUST_WEIGHT (|ln tau - ln tau_0| - T)^2 outside |.| <= T and
+    nothing inside, so it cannot bias a fit that converges within it."""
+    import math
+
+    from skyfit.fit.photo import TRUST_WEIGHT, PhotoProblem
+
+    problem = PhotoProblem.of(_problem(sky, ["mie_aod_550", "exposure"]), {})
+    freeze_tables(problem, problem.param.initial_vector(), problem.model.factor_model(), wavelength_nodes_count=None)
+    tau0 = problem.param.free_dict(problem.param.initial_vector())["mie_aod_550"]
+    radius = math.log(1.5)
+    for excess in (-0.2, 0.0, 0.1, 0.3):
+        vals = problem.param.free_dict(problem.param.initial_vector())
+        vals["mie_aod_550"] = tau0 * math.exp(radius + excess)
+        x = problem.param.to_unconstrained(vals)
+        with torch.no_grad():
+            problem.trust = None
+            plain = float(problem.objective(x))
+            problem.trust = (math.log(tau0), radius)
+            bounded = float(problem.objective(x))
+        assert bounded - plain == pytest.approx(TRUST_WEIGHT * max(excess, 0.0) ** 2, rel=1e-9, abs=1e-12)
