@@ -141,9 +141,10 @@ def stage_fits(work: Path, v: str, only: list[str] | None) -> None:
                           "free": {k: res["parameters"][k] for k in res["free"]}}), flush=True)
 
 
-def stage_joint(work: Path, v: str, max_iter: int = 300) -> None:
+def stage_joint(work: Path, v: str, max_iter: int = 300, only: list[str] | None = None) -> None:
     """One fit of the day: the atmosphere shared, exposure and heading per capture, warm-started at
-    the per-capture fits (the atmosphere at their median)."""
+    the per-capture fits (the atmosphere at their median). ``only``: these captures (HH.MM) alone, e.g. to take a
+    ``_t`` variant's tilt from part of the day and predict the rest."""
     from skyfit.fit.parameters import PARAMETERS
     from skyfit.fit.run import run_fit
 
@@ -151,7 +152,7 @@ def stage_joint(work: Path, v: str, max_iter: int = 300) -> None:
     if out.exists():
         return
     cfg = variant_config(v)
-    caps = _captures()
+    caps = [c for c in _captures() if not only or _short(c) in only]
     tilt = _parse(v)[3]
     if tilt:
         cfg["fit"]["free"] += TILT
@@ -321,7 +322,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--stage", choices=("fits", "joint", "cross", "report"), default="fits")
     ap.add_argument("--variants", default="hg,tthg_bl")
-    ap.add_argument("--captures", default="all", help="fits: comma list of HH.MM")
+    ap.add_argument("--captures", default="all", help="fits, joint: comma list of HH.MM")
     ap.add_argument("--sources", default="12.00", help="cross: comma list of HH.MM source captures")
     ap.add_argument("--work", default=str(ROOT / "docs" / "kider_instrument"))
     ap.add_argument("--orientation-work", default=str(ROOT / "docs" / "kider"), help="report: docs/kider.md (a)'s fits")
@@ -342,7 +343,7 @@ def main() -> None:
         if args.stage == "fits":
             stage_fits(work, v, only)
         elif args.stage == "joint":
-            stage_joint(work, v, args.joint_max_iter)
+            stage_joint(work, v, args.joint_max_iter, only)
         else:
             stage_cross(work, v, args.sources.split(","))
 
