@@ -498,7 +498,7 @@ FIT_FLAGS = {
     "max_iter": "max_iter", "adam_steps": "adam_steps", "seed": "seed", "wavelengths": "wavelengths",
     "min_elevation": "min_elevation_deg", "sun_mask": "sun_mask_deg", "max_samples": "max_samples",
     "sigma_relative": "sigma_relative", "accuracy": "accuracy", "sigma": "sigma", "optimiser": "optimiser",
-    "sigma_discrepancy": "sigma_discrepancy",
+    "sigma_discrepancy": "sigma_discrepancy", "ms_follow": "ms_follow",
 }
 """The per-fit flags of ``fit`` and ``batch`` (argparse dest -> FitSettings field)."""
 
@@ -533,6 +533,9 @@ def _add_fit_options(p, D) -> None:
     p.add_argument("--wavelengths", help="model grid for RGB data, START:STOP:STEP or a list [nm]")
     p.add_argument("--min-elevation", type=float, help=f"horizon mask: lowest elevation used [deg] (default {D.min_elevation_deg:g})")
     p.add_argument("--sun-mask", type=float, help=f"images: radius of the disk around the sun left out [deg] (default {D.sun_mask_deg:g})")
+    p.add_argument("--fast-multiple", dest="ms_follow", action="store_false", default=None,
+                   help="photos: hold the multiple-scattering factor fixed between refreshes instead of following it in "
+                        "the aerosol optical depth (about half the table builds; biased low on hazy skies; docs/photos.md)")
     p.add_argument("--max-samples", type=int, help="images: use every k-th pixel so that at most this many remain")
     p.add_argument("--sigma-relative", type=float, help=f"images: relative noise when the header has none (default {D.sigma_relative:g})")
     p.add_argument("--sigma", choices=SIGMA_MODES,

@@ -141,3 +141,16 @@ def test_trust_region_penalises_only_outside(sky):
             problem.trust = (math.log(tau0), radius)
             bounded = float(problem.objective(x))
         assert bounded - plain == pytest.approx(TRUST_WEIGHT * max(excess, 0.0) ** 2, rel=1e-9, abs=1e-12)
+
+
+def test_fast_multiple_holds_the_factor(sky):
+    """``ms_follow: false`` (``--fast-multiple``): one table build per refresh and no slope; the setting is checked."""
+    from skyfit.fit.photo import PhotoProblem
+
+    problem = PhotoProblem.of(_problem(sky, ["mie_aod_550", "exposure"]), {})
+    problem.follow = False
+    freeze_tables(problem, problem.param.initial_vector(), problem.model.factor_model(), wavelength_nodes_count=None)
+    assert problem.frozen_slope is None and problem.table_builds == 1
+    assert fit_settings({"ms_follow": False}).ms_follow is False
+    with pytest.raises(FitError, match="ms_follow must be true or false"):
+        fit_settings({"ms_follow": "no"}, where="fit")

@@ -547,6 +547,8 @@ class PhotoProblem(FitProblem):
 
     priors: dict = {}
     sun: SunDatum | None = None
+    follow: bool = True
+    """Follow the lagged multiple-scattering factor in the aerosol optical depth (:func:`follows_aod`)."""
     trust: tuple[float, float] | None = None
     """(ln tau_0, T): the lagged fit's trust region in the aerosol optical depth (:data:`MS_AOD_TRUST`), or None."""
 
@@ -712,6 +714,7 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         prep = prepare([obs], config, settings, device=device)
         problem = PhotoProblem.of(prep.problem(settings.free, settings.per_observation, {**settings.initial, **(start or {})}),
                                   camera_priors(settings.free), sun_datum(sc.camera, sc.detected_sun))
+        problem.follow = settings.ms_follow
         options = settings.options(progress)
         if (problem.priors or problem.sun is not None) and getattr(options, "method", None) not in (None, "lbfgs"):
             # the priors and the sun datum live in the objective, not in residuals
@@ -882,7 +885,7 @@ def freeze_tables(problem: FitProblem, x: torch.Tensor, bruneton: "SkyModel | No
         problem.frozen_slope, problem.trust = None, None
         problem.frozen_factor = multiple_from_tables(problem, x, tables, nodes)
         stepped = None
-        if MS_AOD_SLOPE and isinstance(problem, PhotoProblem) and "mie_aod_550" in problem.param.free:
+        if follows_aod(problem):
             with torch.no_grad():
                 log_depth = aerosol_log_depth(problem.param.atmosphere(problem.param.to_physical(x)))
             if (previous is not None and old is not None and len(old) > 3
@@ -918,6 +921,13 @@ aerosol optical depth by less than this (relative), inside its trust region: a f
 AOD (issue 13), and what the factor's remaining change moves it by. [1]"""
 TRUST_WEIGHT = 1.0e3
 """Weight of the trust region's penalty, w max(0, |ln tau - ln tau_0| - T)^2, on the scale of the loss per element."""
+
+
+def follows_aod(problem: FitProblem) -> bool:
+    """Whether a lagged fit follows the problem's factor in the aerosol optical depth: a photo's (:class:`PhotoProblem`,
+    its ``follow``, the ``ms_follow`` setting) with ``mie_aod_550`` free, and :data:`MS_AOD_SLOPE`."""
+    return (MS_AOD_SLOPE and isinstance(problem, PhotoProblem) and getattr(problem, "follow", True)
+            and "mie_aod_550" in problem.param.free)
 
 
 def aod_stepped(problem: FitProblem, x: torch.Tensor) -> torch.Tensor:
@@ -1056,7 +1066,7 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
         problem.bruneton = (bruneton, tables[0], tables[1], stepped)
         problem.frozen_slope, problem.trust = None, None
         problem.frozen_factor = multiple_from_tables(problem, x, tables[0], tables[1])
-        if stepped is not None and MS_AOD_SLOPE and isinstance(problem, PhotoProblem) and "mie_aod_550" in problem.param.free:
+        if stepped is not None and follows_aod(problem):
             follow_aod(problem, x, stepped)
     else:
         freeze_tables(problem, x, bruneton)

@@ -97,6 +97,10 @@ class FitSettings:
     sky regions) or ``larger`` (an upper bound of both); skyfit.fit.budget, docs/uncertainty.md."""
     sigma_clusters: int = CLUSTERS
     """The sandwich's target number of sky-region clusters per observation (skyfit.fit.budget.sky_clusters)."""
+    ms_follow: bool = True
+    """Photo fits: follow the multiple-scattering factor to first order in the aerosol optical depth between
+    refreshes (one more table build per refresh; skyfit.fit.photo.aod_slope). False: hold it fixed, about half the
+    builds, with the old bias low on hazy skies (docs/photos.md)."""
     accuracy: str | None = None
     """``auto`` (= ``noise``: relative model error <= 1/3 of the data's median relative sigma), ``de=X`` or
     ``rel=X``: replaces integrator, view_samples, rule (and the multiple-scattering fields for orders >= 2)
@@ -172,7 +176,7 @@ def check_setting(name: str, value, label: str, ranges: dict = SETTING_RANGES) -
     elif name in _STRINGS:
         if not isinstance(value, str):
             raise FitError(f"{label} must be a string, got {value!r}")
-    elif name == "per_sample_sun" and not isinstance(value, bool):
+    elif name in ("per_sample_sun", "ms_follow") and not isinstance(value, bool):
         raise FitError(f"{label} must be true or false, got {value!r}")
 
 
