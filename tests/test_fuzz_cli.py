@@ -194,7 +194,7 @@ def generate() -> list[tuple[str, str, list[str], list[str], dict]]:
             if not a.option_strings or isinstance(a, argparse._HelpAction):
                 continue
             flag, dest = _opt(a), a.dest
-            if isinstance(a, (argparse._StoreTrueAction, argparse.BooleanOptionalAction)):
+            if isinstance(a, (argparse._StoreTrueAction, argparse._StoreFalseAction, argparse.BooleanOptionalAction)):
                 cases.append((f"{cmd}{flag}=value-to-a-switch", cmd, [f"{flag}=yes"], [flag], {}))
                 continue
             if a.choices is not None:
