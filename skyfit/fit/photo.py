@@ -881,22 +881,21 @@ def freeze_tables(problem: FitProblem, x: torch.Tensor, bruneton: "SkyModel | No
             return tables, nodes
 
         tables, nodes = build(x)
-        previous, old = getattr(problem, "frozen_slope", None), getattr(problem, "bruneton", None)
+        previous, old = problem.frozen_slope, getattr(problem, "bruneton", None)
         problem.frozen_slope, problem.trust = None, None
         problem.frozen_factor = multiple_from_tables(problem, x, tables, nodes)
         stepped = None
         if follows_aod(problem):
-            with torch.no_grad():
-                log_depth = aerosol_log_depth(problem.param.atmosphere(problem.param.to_physical(x)))
+            log_depth = _log_depth(problem, x)
             if (previous is not None and old is not None and len(old) > 3
                     and float((log_depth - previous[1]).abs().max()) < MS_SLOPE_REUSE):
                 # the optical depth hardly moved since the slope was built: keep it (one build instead of two)
                 stepped = old[3]
                 problem.frozen_slope = (previous[0], log_depth)
-                problem.trust = (math.log(float(problem.param.free_dict(x)["mie_aod_550"])), MS_AOD_TRUST)
+                problem.trust = (_log_aod(problem, x), MS_AOD_TRUST)
             else:
                 stepped = build(aod_stepped(problem, x))
-                follow_aod(problem, x, stepped)
+                follow_aod(problem, x, stepped, log_depth)
         problem.bruneton = (bruneton, tables, nodes, stepped)
         return
     if problem.model.orders > 1:
@@ -937,33 +936,38 @@ def aod_stepped(problem: FitProblem, x: torch.Tensor) -> torch.Tensor:
     return problem.param.to_unconstrained(vals, x.dtype, x.device)
 
 
-def follow_aod(problem: FitProblem, x: torch.Tensor, stepped) -> None:
+def _log_aod(problem: FitProblem, x: torch.Tensor) -> float:
+    """ln of the aerosol optical depth at 550 nm at ``x`` (the trust region's coordinate). [1]"""
+    return math.log(float(problem.param.free_dict(x)["mie_aod_550"]))
+
+
+def _log_depth(problem: FitProblem, x: torch.Tensor) -> torch.Tensor:
+    """ln of the aerosol optical depth at each model wavelength at ``x``, shape (W,) (the slope's coordinate). [1]"""
+    with torch.no_grad():
+        return aerosol_log_depth(problem.param.atmosphere(problem.param.to_physical(x)))
+
+
+def follow_aod(problem: FitProblem, x: torch.Tensor, stepped, log_depth: torch.Tensor) -> None:
     """Set the problem's :attr:`frozen_slope` from the tables ``stepped`` = (tables, nodes) built at
-    :func:`aod_stepped` (x), and its trust region (:data:`MS_AOD_TRUST`) around x's optical depth."""
-    problem.frozen_slope = aod_slope(problem, x, problem.frozen_factor, lambda _x: stepped)
-    problem.trust = (math.log(float(problem.param.free_dict(x)["mie_aod_550"])), MS_AOD_TRUST)
+    :func:`aod_stepped` (x), and its trust region (:data:`MS_AOD_TRUST`) around x's optical depth;
+    ``log_depth`` is :func:`_log_depth` (x)."""
+    problem.frozen_slope = aod_slope(problem, x, problem.frozen_factor, stepped, log_depth)
+    problem.trust = (_log_aod(problem, x), MS_AOD_TRUST)
 
 
-def aod_slope(problem: FitProblem, x: torch.Tensor, factor: list[torch.Tensor], build) -> tuple[list[torch.Tensor], torch.Tensor]:
+def aod_slope(problem: FitProblem, x: torch.Tensor, factor: list[torch.Tensor], stepped,
+              log_depth: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
     """The logarithmic derivative D of the multiple-over-single ratio F - 1 in the aerosol optical depth, per sample
-    and wavelength, by a second table build with every wavelength's aerosol optical depth times
-    1 + :data:`MS_AOD_STEP`: (D, ln tau(lambda) at x, shape (W,)). [1]
+    and wavelength, from ``factor`` (built at x) and the tables ``stepped`` = (tables, nodes) built with every
+    wavelength's aerosol optical depth times 1 + :data:`MS_AOD_STEP` (:func:`aod_stepped`):
+    (D, ``log_depth``, ln tau(lambda) at x, shape (W,)). [1]
 
     Why: with F held fixed between refreshes a fit sees multiple scattering grow with the aerosol only as fast as
     single scattering, while in a hazy sky the multiple share itself grows with tau (it is a third to a half of
     the radiance at AOD 0.3); the fit's optimum with F frozen is then not the optimum of the model (a lagged fixed
     point), and on synthetic hazy photos the refreshes crept upward from a low aerosol without settling
     (docs/photos.md, "The lagged factor"). :meth:`FitProblem.frozen_factor_at` applies it."""
-    with torch.no_grad():
-        log_depth = aerosol_log_depth(problem.param.atmosphere(problem.param.to_physical(x)))
-    x1 = aod_stepped(problem, x)
-    tables1, nodes1 = build(x1)
-    held = problem.frozen_slope
-    problem.frozen_slope = None
-    try:
-        factor1 = multiple_from_tables(problem, x1, tables1, nodes1)
-    finally:
-        problem.frozen_slope = held
+    factor1 = multiple_from_tables(problem, aod_stepped(problem, x), *stepped)  # its live anchor ignores any frozen factor
     step = math.log1p(MS_AOD_STEP)
     slope = []
     for f0, f1 in zip(factor, factor1):
@@ -1056,7 +1060,7 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
     (:data:`FACTOR_TOL`; the fit would not move), or (factor followed) when the AOD moved by less than
     :data:`MS_AOD_SETTLE` — never while the fit ends on its trust region's bound — or after ``refreshes`` fits. The factor is left at the final
     values, so metrics and Laplace see the fitted model (the Laplace Hessian omits the multiple part's own
-    dependence on the parameters). ``tables``: Bruneton tables ``(tables, wavelength nodes)`` already built near
+    dependence on the parameters, but for a followed factor's first-order term in the aerosol optical depth). ``tables``: Bruneton tables ``(tables, wavelength nodes)`` already built near
     the starting point (a second pass starting at the first's result), used for the first fit instead of a build.
     ``refresh_last=False`` skips the build after the last fit (short fits scored by their loss alone).
     """
@@ -1067,7 +1071,7 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
         problem.frozen_slope, problem.trust = None, None
         problem.frozen_factor = multiple_from_tables(problem, x, tables[0], tables[1])
         if stepped is not None and follows_aod(problem):
-            follow_aod(problem, x, stepped)
+            follow_aod(problem, x, stepped, _log_depth(problem, x))
     else:
         freeze_tables(problem, x, bruneton)
     _start_at(problem, problem.profile_exposure(x))
@@ -1080,10 +1084,10 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
         x = res.x.detach()
         if not refresh_last and k == max(1, refreshes) - 1:
             break
-        trust = getattr(problem, "trust", None)
-        at_trust_bound = trust is not None and abs(math.log(float(problem.param.free_dict(x)["mie_aod_550"])) - trust[0]) > 0.99 * trust[1]
+        trust = getattr(problem, "trust", None)  # a PhotoProblem's
+        at_trust_bound = trust is not None and abs(_log_aod(problem, x) - trust[0]) > 0.99 * trust[1]
         used = problem.frozen_factor
-        if used is not None and getattr(problem, "frozen_slope", None) is not None:  # the factor the fit ended on
+        if used is not None and problem.frozen_slope is not None:  # the factor the fit ended on
             with torch.no_grad():
                 atm = problem.param.atmosphere(problem.param.to_physical(x))
                 used = [problem.frozen_factor_at(atm, i) for i in range(len(used))]
