@@ -196,7 +196,8 @@ def _hours(res: dict) -> float:
 def drift_heading(work: Path, v: str, target: str) -> float:
     """The scanner's heading at the target's time from its drift over the day, without the target's data [rad]:
     a straight line in time through the headings fitted on every other capture (``{v}_HH.MM.json``). The
-    heading of the Kider scanner drifts by about -4 deg/h (docs/data.md); Bruneton's evaluation met it too."""
+    heading of the Kider scanner drifts by about -3 deg/h (docs/kider.md (d); docs/data.md has the axis drift), which
+    Bruneton's evaluation met too."""
     times, heads, t_target = [], [], None
     for cap in _captures():
         name = _short(cap)
