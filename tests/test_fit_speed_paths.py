@@ -127,6 +127,25 @@ def test_lm_respects_tables_frozen_by_the_caller(base, monkeypatch):
     assert res.convergence["iterations"] >= 1 and calls == []
 
 
+def test_lm_rejects_a_trial_step_that_rounds_onto_a_bound(base):
+    """A sigmoid rounded onto a bound (mie_g2 = -1 exactly, which the atmosphere refuses) rejects LM's trial step
+    instead of ending the fit; at the fit's own start it is still an error."""
+    from skyfit.fit.optimise import _evaluate
+
+    obs = _observation(base)
+    hg = base.replace(mie_phase="henyey_greenstein")
+    param = Parameterisation(hg, FREE + ["mie_g2", "mie_hg_weight"], values={"mie_g2": -0.3, "mie_hg_weight": 0.9})
+    problem = FitProblem(param, _model(), [obs], make_loss("squared"))
+    x = param.initial_vector().clone()
+    r, tables = _evaluate(problem, x, trial=True)
+    assert r is not None and bool(torch.isfinite(r).all())
+    x[param.names.index("mie_g2")] = -60.0  # sigmoid 9e-27: -1 + 9e-27 rounds to -1.0
+    assert float(param.to_physical(x)["mie_g2"]) == -1.0
+    assert _evaluate(problem, x, trial=True) == (None, None)
+    with pytest.raises(FitError, match="invalid atmosphere"):
+        _evaluate(problem, x)
+
+
 # -- the cached LUT against the row loop -------------------------------------------------------
 @pytest.mark.parametrize("size, directions, samples", [((4, 5), 8, 4), ((16, 16), 32, 12)])
 def test_cached_lut_equals_the_row_loop(base, size, directions, samples):

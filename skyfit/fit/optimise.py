@@ -183,12 +183,18 @@ def _tables_at(problem: FitProblem, x: Tensor):
     return problem.model.tables(problem.param.atmosphere(problem.param.to_physical(x)))
 
 
-def _evaluate(problem: FitProblem, x: Tensor):
-    """(residuals, tables) at x, or (None, None) where the model refuses x or returns non-finite values."""
+def _evaluate(problem: FitProblem, x: Tensor, trial: bool = False):
+    """(residuals, tables) at x, or (None, None) where the model refuses x or returns non-finite values.
+
+    ``trial``: x is a trial step from a point that evaluated; a FitError there (a sigmoid rounded onto a
+    parameter's bound, e.g. mie_g2 = -1 exactly, which the atmosphere refuses) rejects the step instead of
+    ending the fit."""
     try:
         tables = _tables_at(problem, x)
         r = residual_vector(problem, x, tables)
     except FitError:
+        if trial:
+            return None, None
         raise
     except ValueError:
         return None, None
@@ -304,7 +310,7 @@ def _run_start_lm(problem: FitProblem, x0: Tensor, opt: FitOptions, bar, label: 
                     step = step * (LM_MAX_STEP / big)
                 pred = -(float(g @ step) + 0.5 * float(step @ (H @ step)))
                 first_pred = pred if first_pred is None else first_pred
-                r_new, t_new = _evaluate(problem, x + step)
+                r_new, t_new = _evaluate(problem, x + step, trial=True)
                 evals += 1
                 f_new = 0.5 * float(r_new @ r_new) if r_new is not None else math.inf
                 rho = (f - f_new) / pred if pred > 0 else -1.0
