@@ -48,7 +48,7 @@ import torch
 from skyfit.atmosphere import atmosphere_from_config, load_yaml
 from skyfit.camera import FisheyeCamera
 from skyfit.fit import FitOptions, FitProblem, Observation, Parameterisation, fit, make_loss
-from skyfit.fit.budget import DISCREPANCY_MODELS, SANDWICH_FORMS, ReferenceModel, error_budget, numerical_term
+from skyfit.fit.budget import DISCREPANCY_MODELS, SANDWICH_FORMS, ReferenceModel, error_budget, numerical_term, phase_expansion
 from skyfit.fit.data import noise_sigma
 from skyfit.fit.laplace import laplace_summary
 from skyfit.fit.problem import fit_settings, prepare
@@ -182,6 +182,10 @@ def one_sky(k: int, args) -> dict:
     sigmas = {"total": error_budget(problem, res.x, lap, term=term)}
     for name, kw in variants(args.compare).items():
         sigmas[name] = error_budget(problem, res.x, lap, term=term, **kw)
+    expansion = None
+    if args.expand:  # the default total plus the phase term (skyfit.fit.budget.phase_expansion)
+        expansion = phase_expansion(problem, res.x, term, options=FitOptions(starts=1, adam_steps=0, max_iter=FIT["max_iter"]))
+        sigmas["expand"] = error_budget(problem, res.x, lap, term=term, expansion=expansion)
     tot = sigmas["total"]
     c_unc = time.process_time() - c0
     row = {"sky": k, "two_term_hg": two_term, "truth": t, "fitted": {}, "z_noise": {}, "in68_noise": {}, "in95_noise": {},
@@ -192,6 +196,7 @@ def one_sky(k: int, args) -> dict:
            "discrepancy": {name: {kk: b["budget"].get(kk) for kk in ("discrepancy", "sigma_discrepancy")}
                            for name, b in sigmas.items()},
            "convergence": res.convergence["reason"], "loss": res.loss,
+           "phase_expansion": None if expansion is None else {k: expansion[k] for k in ("values", "loss", "converged", "seconds")},
            "cpu_s": {"truth_render": info["truth_render_cpu_s"], "fit": c_fit, "uncertainty": c_unc},
            "n_samples": info["n_samples"]}
     for name in sigmas:
@@ -264,6 +269,8 @@ def main(argv=None) -> int:
     ap.add_argument("--refits", type=int, default=1, help="the budget's lagged refits (fit.sigma_refits)")
     ap.add_argument("--compare", default="", help="other discrepancy models beside the default total, MODEL[:G[:FORM]],... "
                     "(e.g. sandwich:12,sandwich:24:cr1,larger:12)")
+    ap.add_argument("--expand", action="store_true", help="also score the total sigma with the phase term (a two-term HG "
+                    "refit's shift, skyfit.fit.budget.phase_expansion): columns in68_expand, in95_expand, z_expand")
     ap.add_argument("--part", default="0/1", help="K/N: run only the skies k with k % N == K (N processes side by side)")
     ap.add_argument("--descending", action="store_true", help="run the part's skies from the last (a second process per part)")
     ap.add_argument("--merge", nargs="+", help="merge the JSON files of the parts into --out (no fitting)")

@@ -27,6 +27,23 @@ def circular_diff_deg(a: float, b: float) -> float:
     return (a - b + 180.0) % 360.0 - 180.0
 
 
+def ray_errors(true_cam: dict, fit_cam: dict, step: int = 4, max_zenith_deg: float = 85.0) -> dict:
+    """Angles between the rays the true and the fitted camera give the same pixels (every ``step``-th pixel
+    both see, up to ``max_zenith_deg`` from the true camera's axis): the whole camera's error in one number,
+    projection, lens, centre, heading and tilt together. [deg]"""
+    from skyfit.camera import FisheyeCamera
+
+    t, f = FisheyeCamera.from_metadata(true_cam), FisheyeCamera.from_metadata(fit_cam)
+    vt, okt = t.pixel_vectors(torch.float64)
+    vf, okf = f.pixel_vectors(torch.float64)
+    axis = t.rotation(torch.float64)[:, 2]
+    sel = torch.zeros_like(okt)
+    sel[::step, ::step] = True
+    m = okt & okf & sel & ((vt @ axis) >= math.cos(math.radians(max_zenith_deg)))
+    ang = torch.rad2deg(torch.acos((vt[m] * vf[m]).sum(-1).clamp(-1.0, 1.0))).numpy()
+    return {"median": float(np.median(ang)), "p95": float(np.percentile(ang, 95)), "max": float(ang.max())}
+
+
 def score(truth: dict, result: dict) -> dict:
     """Fit vs truth of one case."""
     tp = truth["atmosphere"]["parameters"]
@@ -34,7 +51,9 @@ def score(truth: dict, result: dict) -> dict:
     tc = truth["camera"]
     return {
         "seed": truth["seed"], "bracket": truth["bracket"] is not None, "projection_true": tc["projection"],
-        "projection_fit": cam["projection"], "sun_zenith_deg": truth["sun"]["zenith_deg"],
+        "projection_fit": cam.get("nominal_projection", cam["projection"]), "lens_radial": cam.get("lens_radial"),
+        "kb_k1_true": (tc.get("kb_coeffs") or [None])[0], "ray_err_deg": ray_errors(tc, cam),
+        "sun_zenith_deg": truth["sun"]["zenith_deg"],
         "aod_true": tp["aod_550"] if "aod_550" in tp else tp.get("mie_aod_550"), "aod_fit": aer["aod_550"],
         "aod_sigma": aer["sigma"].get("aod_550"),
         "alpha_true": tp.get("angstrom_alpha", tp.get("mie_angstrom_alpha")), "alpha_fit": aer["angstrom_alpha"],
@@ -132,6 +151,8 @@ def write_study(rows: list, out: Path, argv) -> int:
         "sun_within_1deg": sum(r["sun_separation_deg"] is not None and r["sun_separation_deg"] <= 1 for r in ok),
         "sun_detected": sum(r["sun_detected"] for r in ok),
         "projection_right": sum(r["projection_fit"] == r["projection_true"] for r in ok),
+        "rays_p95_within_0.5deg": sum(r.get("ray_err_deg", {}).get("p95", math.inf) <= 0.5 for r in ok),
+        "rays_p95_median_deg": float(np.median([r["ray_err_deg"]["p95"] for r in ok if "ray_err_deg" in r])) if ok else None,
         "median_wall_s": float(np.median([r["wall_s"] for r in ok])) if ok else None,
         "median_cpu_s": float(np.median([r["cpu_s"] for r in ok])) if ok else None,
         "median_load_avg": float(np.median([r["load_avg"] for r in rows])) if rows else None,
@@ -139,18 +160,21 @@ def write_study(rows: list, out: Path, argv) -> int:
     }
     (out / "study.json").write_text(json.dumps({"summary": summary, "cases": rows}, indent=1, default=str))
     lines = ["| case | bracket | projection (true → fit) | sun zenith | AOD true | AOD fit ± σ | α true / fit | g true / fit "
-             "| heading err [°] | centre err [px] | sun sep [°] | rel. rms | wall s | CPU s | load |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| heading err [°] | centre err [px] | rays p95 [°] | lens k (KB k1 true) | sun sep [°] | rel. rms | wall s | CPU s | load |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['case']} | | | | | failed: {r['error']} | | | | | | | | | |")
+            lines.append(f"| {r['case']} | | | | | failed: {r['error']} | | | | | | | | | | | |")
             continue
         sig = f" ± {r['aod_sigma']:.3f}" if r.get("aod_sigma") else ""
         sep = "—" if r["sun_separation_deg"] is None else f"{r['sun_separation_deg']:.2f}"
         lines.append(f"| {r['case']} | {'yes' if r['bracket'] else 'no'} | {r['projection_true']} → {r['projection_fit']} "
                      f"| {r['sun_zenith_deg']:.1f} | {r['aod_true']:.3f} | {r['aod_fit']:.3f}{sig} "
                      f"| {r['alpha_true']:.2f} / {r['alpha_fit']:.2f} | {r['g_true']:.2f} / {r['g_fit']:.2f} "
-                     f"| {r['heading_err_deg']:+.2f} | {r['centre_err_px']:.2f} | {sep} | {r['rmse_rel']:.3f} | {r['wall_s']:.0f} "
+                     f"| {r['heading_err_deg']:+.2f} | {r['centre_err_px']:.2f} | {r['ray_err_deg']['p95']:.2f} "
+                     f"| {'—' if r.get('lens_radial') is None else format(r['lens_radial'], '+.3f')}"
+                     f"{'' if r.get('kb_k1_true') is None else ' (' + format(r['kb_k1_true'], '+.3f') + ')'} "
+                     f"| {sep} | {r['rmse_rel']:.3f} | {r['wall_s']:.0f} "
                      f"| {r.get('cpu_s', float('nan')):.0f} | {r.get('load_avg', float('nan')):.1f} |")
     (out / "study.md").write_text("\n".join(lines) + "\n\n```json\n" + json.dumps(summary, indent=1) + "\n```\n")
     print(json.dumps(summary, indent=1))

@@ -150,7 +150,8 @@ def check_photo_result(out: Path, name: str) -> dict:
     for k in ("projection", "cx", "cy", "radius_px", "up_azimuth_deg", "tilt_deg"):
         assert k in cam, k
     # the geometry comes from the image and the sun: the truth within a pixel / a few degrees
-    assert cam["projection"] == "equidistant"
+    # the fitted lens: the chosen projection through a small radial departure (Kannala-Brandt when it is not 0)
+    assert cam.get("nominal_projection", cam["projection"]) == "equidistant" and abs(cam.get("lens_radial", 0.0)) < 0.02
     assert abs(cam["cx"] - CAM["cx"]) < 1.0 and abs(cam["cy"] - CAM["cy"]) < 1.0
     assert abs(cam["radius_px"] - CAM["radius"]) < 1.5
     assert abs((cam["up_azimuth_deg"] - CAM["up_azimuth_deg"] + 180) % 360 - 180) < 8.0  # 5 iterations: loose
@@ -356,7 +357,7 @@ def test_calibrate_camera_cli_round_trip_then_fit_with_the_camera(photos, fitted
     meta = read_camera(out / "camera.yaml")
     assert summary["photos"] == 2 and [p["time"] for p in meta["photos"]] == [T1, T2]
     assert meta["source"].startswith("skyfit calibrate-camera") and (out / "camera.yaml").read_text().startswith("# CAMERA.yaml")
-    keys = ("projection", "size", "cx", "cy", "radius_px", "up_azimuth_deg", "tilt_deg", "max_zenith_deg")
+    keys = ("projection", "size", "cx", "cy", "radius_px", "focal_px", "kb_coeffs", "up_azimuth_deg", "tilt_deg", "max_zenith_deg")
     x, y = torch.meshgrid(torch.arange(20.0, 100.0, 7.0, dtype=torch.float64),
                           torch.arange(10.0, 90.0, 7.0, dtype=torch.float64), indexing="xy")
 
@@ -379,7 +380,7 @@ def test_calibrate_camera_cli_round_trip_then_fit_with_the_camera(photos, fitted
         assert meta[k] == pytest.approx(float(np.mean([p[k] for p in e])), abs=1e-12)  # the median of two
     d = ((e[1]["up_azimuth_deg"] - e[0]["up_azimuth_deg"] + 180.0) % 360.0) - 180.0
     assert meta["up_azimuth_deg"] == pytest.approx((e[0]["up_azimuth_deg"] + d / 2.0) % 360.0, abs=1e-9)
-    assert meta["projection"] == "equidistant" and abs(meta["cx"] - CAM["cx"]) < 1.0 and abs(meta["cy"] - CAM["cy"]) < 1.0
+    assert meta.get("nominal_projection", meta["projection"]) == "equidistant" and abs(meta["cx"] - CAM["cx"]) < 1.0 and abs(meta["cy"] - CAM["cy"]) < 1.0
     assert abs((meta["up_azimuth_deg"] - CAM["up_azimuth_deg"] + 180) % 360 - 180) < 8.0
     # the file read back is the combined camera
     back = camera_from_dict(meta, SHAPE).pixel_to_direction(x, y)

@@ -71,7 +71,7 @@ from ..transmittance import make_integrator
 from .laplace import covariance_summary, derived_functions, display_names, laplace_summary, physical_slot_values, transform_jacobian
 from .model import FitProblem, SkyModel
 from .optimise import FitOptions, fit
-from .parameters import FitError
+from .parameters import MIE_G2_DEFAULT, MIE_HG_WEIGHT_DEFAULT, NUISANCE, PARAMETERS, TWO_TERM_HG, FitError, Parameterisation, inside_bounds
 
 SIGMA_MODES = ("total", "noise")
 """``fit.sigma``: ``total`` (noise + numerical + discrepancy, the default) or ``noise`` (the Laplace sigma of the noise alone)."""
@@ -571,10 +571,70 @@ def numerical_term(problem: FitProblem, x: Tensor, lap: dict, *, reference: SkyM
     return NumericalTerm(dx, tail, m_cor, budget)
 
 
+def expansion_applies(problem: FitProblem) -> bool:
+    """Whether :func:`phase_expansion` can refit ``problem`` with the next phase rung: a one-term Henyey-Greenstein
+    phase with its asymmetry free (the two-term parameters neither free nor set)."""
+    p = problem.param
+    return (p.base.mie_phase == "henyey_greenstein" and "mie_g" in p.free
+            and not (set(p.free) | p._overridden) & set(TWO_TERM_HG))
+
+
+def phase_expansion(problem: FitProblem, x: Tensor, term: NumericalTerm, *, reference: SkyModel | None = None,
+                    options: FitOptions | None = None) -> dict | None:
+    """The shift of every parameter when the fit's one-term Henyey-Greenstein phase is widened to two terms.
+
+    A one-term fit of a sky whose aerosol has a backward lobe estimates the forward lobe and lets the other
+    parameters absorb the rest (docs/uncertainty.md, "Coverage under model error": g 0.04-0.16 above the asymmetry
+    parameter, beta -13 %); the residuals do not show what the parameters absorbed, so neither discrepancy model
+    of :func:`error_budget` can. This refits the same data with the next rung of the phase ladder
+    (skyfit.fit.select's ``two_term_hg``: f HG(g1) + (1 - f) HG(g2)), from the numerically corrected optimum
+    x + dx with g2 and f at their ladder starts (:data:`MIE_G2_DEFAULT`, :data:`MIE_HG_WEIGHT_DEFAULT`), the
+    reference's factor at that start held (as :func:`refit_shift`, so that the new lobe does not soak up the
+    numerical error). The two-term phase's asymmetry parameter f g1 + (1 - f) g2 stands for ``mie_g``.
+
+    Returns None where :func:`expansion_applies` is False, else ``e`` (P,) [x units]: the refit's values mapped
+    back into x minus x + dx, ``values`` (the refit's physical g1, g2, f and asymmetry), ``loss`` (the refit's
+    and the one-term fit's corrected loss) and ``seconds``.
+    """
+    if not expansion_applies(problem):
+        return None
+    t0 = time.perf_counter()
+    p = problem.param
+    xc = (x.detach().to(torch.float64) + term.dx).to(x.dtype)
+    vals = {n: p.values[n] for n in p._overridden}
+    vals.update({n: p.values[n] for n in NUISANCE})
+    vals.update({n: inside_bounds(n, v) for n, v in p.free_dict(xc).items()})
+    vals.update(mie_g2=MIE_G2_DEFAULT, mie_hg_weight=MIE_HG_WEIGHT_DEFAULT)
+    wide = Parameterisation(p.base, list(p.free) + list(TWO_TERM_HG), p.n_observations, p.per_observation, vals)
+    ep = copy.copy(problem)
+    ep.param = wide
+    ep.frozen_tables = None
+    ep.frozen_slope = None
+    x0 = wide.initial_vector(x.dtype, x.device)
+    ep.frozen_factor = reference_factor(ep, reference_problem(ep, reference), x0)
+    opt = options or FitOptions(starts=1, adam_steps=0, max_iter=100)
+    res = fit(ep, opt, x0=x0)
+    w = wide.physical_dict(res.x)
+    asym = w["mie_hg_weight"] * w["mie_g"] + (1.0 - w["mie_hg_weight"]) * w["mie_g2"]
+    mapped = {n: w[n] for n in p.free}
+    mapped["mie_g"] = asym
+    mapped = {n: inside_bounds(n, v) for n, v in mapped.items()}
+    try:
+        x_new = p.to_unconstrained(mapped, torch.float64)
+    except FitError:  # the asymmetry beyond mie_g's range cannot happen (|asym| < 1); name it if it does
+        raise FitError(f"the two-term refit's values lie outside the one-term parameters' ranges: {mapped}") from None
+    with torch.no_grad():
+        base_loss = float(problem.loss_from_predictions(term.m_cor, p.to_physical(xc)))
+    return {"e": (x_new - xc.to(torch.float64)).detach(), "values": {"g1": w["mie_g"], "g2": w["mie_g2"],
+            "hg_weight": w["mie_hg_weight"], "asymmetry": asym}, "loss": {"two_term": float(res.loss), "one_term": base_loss},
+            "converged": bool(res.convergence.get("converged", False)), "seconds": time.perf_counter() - t0}
+
+
 def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, reference: SkyModel | None = None,
                  numerical: bool = True, floor: bool = True, refits: int = 0, options: FitOptions | None = None,
                  discrepancy: str = DISCREPANCY_DEFAULT, clusters: int = CLUSTERS, min_count: int = MIN_PER_CLUSTER,
-                 sandwich_form: str = "jackknife", term: NumericalTerm | None = None) -> dict:
+                 sandwich_form: str = "jackknife", term: NumericalTerm | None = None, expand: bool = False,
+                 expansion: dict | None = None) -> dict:
     """The Laplace summary with the total sigma (noise + numerical + discrepancy) and its breakdown.
 
     Args:
@@ -591,6 +651,9 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
         sandwich_form: ``jackknife`` or ``cr1`` (:func:`sandwich_covariance`).
         term: :func:`numerical_term` of this problem, x and lap computed before (``reference``, ``numerical``,
             ``refits`` and ``options`` are then not used).
+        expand: add the phase term (:func:`phase_expansion`, where it applies): the shift to the two-term
+            Henyey-Greenstein refit, as an error like the numerical shift (cov += e e^T).
+        expansion: :func:`phase_expansion`'s result computed before (implies ``expand``).
 
     Returns:
         ``lap``'s keys with ``sigma``, ``interval68``, ``interval95``, ``covariance``, ``correlation``,
@@ -657,7 +720,10 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
     if floor and not applicable:
         budget["floor_note"] = f"no floor for the {problem.loss.name} loss (it needs rho squared on a linear or log residual)"
     share = shares.get(discrepancy, zero)
-    cov_total = cov_noise + share + torch.outer(dx, dx) + torch.outer(tail, tail)
+    if expansion is None and expand:
+        expansion = phase_expansion(problem, x, term, reference=reference, options=options)
+    e = torch.zeros(P, dtype=torch.float64) if expansion is None else expansion["e"].to(torch.float64)
+    cov_total = cov_noise + share + torch.outer(dx, dx) + torch.outer(tail, tail) + torch.outer(e, e)
     out = {**lap, **covariance_summary(problem, x, cov_total, pd)}
     out["positive_definite"] = pd
     out["sigma_mode"] = "total"
@@ -675,6 +741,9 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
             budget[f"sigma_discrepancy_{model}"] = {n: float(s) for n, s in zip(
                 names, torch.sqrt(torch.diagonal(shares[model]).clamp_min(0.0)) * J.abs())}
     budget["numerical_shift"] = {n: float(b - a) for n, a, b in zip(names, v0, v1)}
+    if expansion is not None:
+        budget["sigma_phase"] = {n: float(s_) for n, s_ in zip(names, J.abs() * e.abs())}
+        budget["phase_expansion"] = {k: expansion[k] for k in ("values", "loss", "converged", "seconds")}
     derived = {}
     for name, fn in derived_functions(problem).items():
         xr = x.to(torch.float64).clone().requires_grad_(True)
@@ -683,6 +752,7 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
         with torch.no_grad():
             shifted = float(fn(x.to(torch.float64) + dx))
         derived[name] = {"sigma_noise": lap["derived"][name]["sigma"], "sigma_numerical": abs(float(g @ dx)),
+                         **({"sigma_phase": abs(float(g @ e))} if expansion is not None else {}),
                          "sigma_discrepancy": math.sqrt(max(float(g @ share @ g), 0.0)),
                          "numerical_shift": shifted - float(val.detach())}
         for model in ("floor", "sandwich"):
@@ -697,8 +767,9 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
 
 def uncertainty(problem: FitProblem, x: Tensor, sigma: str = "total", reference: SkyModel | None = None,
                 refits: int = 0, options: FitOptions | None = None, discrepancy: str = DISCREPANCY_DEFAULT,
-                clusters: int = CLUSTERS) -> dict:
-    """RESULT.json's ``laplace``: :func:`error_budget` (with the ``discrepancy`` model and ``clusters``) for
+                clusters: int = CLUSTERS, expand: bool = False) -> dict:
+    """RESULT.json's ``laplace``: :func:`error_budget` (with the ``discrepancy`` model, ``clusters`` and the phase
+    term when ``expand``) for
     ``sigma="total"``, the noise-only Laplace summary (``sigma_mode`` "noise") for ``"noise"``."""
     if sigma not in SIGMA_MODES:
         raise FitError(f"sigma must be one of {', '.join(SIGMA_MODES)}, got {sigma!r}")
@@ -708,4 +779,4 @@ def uncertainty(problem: FitProblem, x: Tensor, sigma: str = "total", reference:
     if sigma == "noise" or not lap.get("positive_definite", True):
         return {**lap, "sigma_mode": "noise"}
     return error_budget(problem, x, lap, reference=reference, refits=refits, options=options, discrepancy=discrepancy,
-                        clusters=clusters)
+                        clusters=clusters, expand=expand)

@@ -191,6 +191,27 @@ def aerosol_log_depth(atm: Atmosphere) -> Tensor:
     return torch.log(atm.mie_extinction * atm.mie_column_height)
 
 
+def lens_directions(d: Tensor, k: Tensor) -> Tensor:
+    """Directions (..., 3) about the +z (optical) axis with their angle theta_p from it moved to
+    theta = theta_p + k theta_p ((pi/2)^2 - theta_p^2), azimuth kept: a lens that departs from its nominal
+    projection (``lens_radial`` k), the axis and the 90-degree circle (the image circle's calibration) fixed.
+
+    To first order in k this is a Kannala-Brandt lens r = f (theta + k1 theta^3) seen as equidistant with k1 = k
+    (Kannala & Brandt 2006, IEEE TPAMI 28, 1335, eq. 6: their odd polynomial in theta); on any classical projection
+    it is the smallest radial departure that keeps centre and horizon: a cubic, zero at both. Monotonic for k in
+    (-0.4, 0.2). Written here: no library moves fisheye rays by a radial law on the sphere. [1]
+    """
+    x, y, z = d.unbind(-1)
+    h = torch.sqrt((x * x + y * y).clamp_min(1e-30))
+    theta = torch.atan2(h, z)
+    q = (math.pi / 2) ** 2 - theta * theta
+    new = theta + k * theta * q
+    # sin(new) / sin(theta), -> 1 + k (pi/2)^2 on the axis (where h -> 0)
+    near = theta < 1e-6
+    ratio = torch.where(near, 1.0 + k * q, torch.sin(new) / torch.where(near, torch.ones_like(h), torch.sin(theta)))
+    return torch.stack([x * ratio, y * ratio, torch.cos(new)], -1)
+
+
 def tilt_directions(d: Tensor, tilt_north: Tensor, tilt_east: Tensor) -> Tensor:
     """Instrument directions (..., 3) in the world frame of an instrument whose zenith axis is tilted by
     ``tilt_north`` toward North and ``tilt_east`` toward East: R_y(tilt_east) R_x(-tilt_north) d (ENU axes). [rad]"""
@@ -246,6 +267,9 @@ class FitProblem:
     def view_directions(self, phys: dict, i: int) -> Tensor:
         """Observation i's used view directions in the world frame, shape (N_i, 3).
 
+        Image data with ``lens_radial`` free first move each direction radially about the optical axis
+        (:func:`lens_directions`; the observation's directions are those of its camera's nominal projection).
+
         The instrument's zenith axis is tilted by ``camera_tilt_north`` toward North and
         ``camera_tilt_east`` toward East: world = R_y(tilt_east) R_x(-tilt_north) instrument
         (ENU axes; R_x, R_y the right-handed rotations about East and North). A rigid rotation,
@@ -255,7 +279,13 @@ class FitProblem:
         tn, te = phys["camera_tilt_north"], phys["camera_tilt_east"]
         if tn.ndim:
             tn, te = tn[i], te[i]
-        return tilt_directions(o.directions[o.mask], tn, te)
+        d = o.directions[o.mask]
+        k = phys.get("lens_radial")
+        if k is not None and o.image_radius is not None:
+            k = k[i] if k.ndim else k
+            if "lens_radial" in self.param.free or float(k) != 0.0:
+                d = lens_directions(d, k)  # image data: the lens's own projection
+        return tilt_directions(d, tn, te)
 
     def frozen_factor_at(self, atm: Atmosphere, i: int) -> Tensor:
         """Observation i's frozen multiple-scattering factor F (N_i, W), followed to first order in the aerosol

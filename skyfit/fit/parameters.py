@@ -18,7 +18,7 @@ which is what Adam's step size and L-BFGS's first step assume.
 Names, units and meanings are listed in :data:`PARAMETERS` and in docs/fitting.md.
 *Shared* parameters describe the atmosphere; the *nuisance* parameters
 (``exposure``, ``sun_azimuth_offset``, ``sun_zenith_offset``, ``camera_tilt_north``,
-``camera_tilt_east``, ``noise_scale``, and for photos ``gain_red``, ``gain_blue``, ``vignetting``) describe the instrument and may take one value per observation in a joint fit.
+``camera_tilt_east``, ``noise_scale``, and for photos ``gain_red``, ``gain_blue``, ``vignetting``, ``lens_radial``) describe the instrument and may take one value per observation in a joint fit.
 """
 from __future__ import annotations
 
@@ -207,6 +207,9 @@ PARAMETERS: dict[str, ParameterSpec] = {
                       description="RGB data: the blue channel's gain relative to green (a camera's white balance)"),
         ParameterSpec("vignetting", "1", "interval", 1.0, -0.9, 0.5, (-0.2, 0.0), nuisance=True, prior="uniform",
                       description="image data: relative illumination 1 + v r^2 at normalised image radius r (r = 1 at 90 deg)"),
+        ParameterSpec("lens_radial", "1", "interval", 1.0, -0.15, 0.15, (-0.03, 0.03), nuisance=True, prior="uniform",
+                      description="image data: the lens's departure from its projection, theta = theta_p + k theta_p "
+                                  "((pi/2)^2 - theta_p^2) (centre and 90-degree circle kept; skyfit.fit.model.lens_directions)"),
     )
 }
 """Every fittable parameter by name: the one table of parameter facts (unit, transform, range, typical span,
@@ -257,7 +260,7 @@ MIE_MIXING_HEIGHT_DEFAULT: float = 200.0
 (h_mix -> 0 is the exponential)."""
 
 _NUISANCE_DEFAULTS = {"exposure": 1.0, "noise_scale": 1.0, **{n: 0.0 for n in ORIENTATION},
-                      "gain_red": 1.0, "gain_blue": 1.0, "vignetting": 0.0}
+                      "gain_red": 1.0, "gain_blue": 1.0, "vignetting": 0.0, "lens_radial": 0.0}
 
 
 def as_number(value, name: str) -> float:

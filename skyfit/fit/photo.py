@@ -50,7 +50,7 @@ from ..camera.masks import SUN_MASK_MAX_DEG, grow_outlier_mask, obstacle_mask, s
 from ..camera.sun import parse_location, parse_time, sun_position
 from ..io.photo import LinearPhoto, read_photo
 from .data import Observation
-from .model import FitProblem, aerosol_log_depth, tilt_directions
+from .model import FitProblem, aerosol_log_depth, lens_directions, tilt_directions
 from .optimise import fit as optimise
 from .problem import fit_settings, make_model, prepare
 
@@ -72,7 +72,9 @@ PHOTO_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "gain_re
               "sun_azimuth_offset", "camera_tilt_north", "camera_tilt_east")
 """Free parameters of a photo fit: the aerosol and the camera's nuisances. Rayleigh's scale stays at the
 config's (a photo of unknown exposure and white balance hardly separates it from the aerosol: add it with
-``free=``); the aerosol's scale height stays at the config's (a ground photo sees the column, not its shape)."""
+``free=``); the aerosol's scale height stays at the config's (a ground photo sees the column, not its shape).
+The lens's departure from the chosen projection (``lens_radial``) is not fitted to the sky, which trades it against
+the aerosol: :func:`lens_from_sun` measures it from a compact sun between the passes."""
 CALIBRATED_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "sun_azimuth_offset")
 """Free parameters when the camera is given (``camera=``): its geometry, gains and vignetting are known."""
 PHOTO_TABLES = (64, 32, 16, 8, 16, 64, 16, 8)
@@ -150,6 +152,10 @@ class PhotoScene:
 # -- camera files --------------------------------------------------------------------------------
 CAMERA_KEYS = ("projection", "size", "width", "height", "cx", "cy", "radius_px", "focal_px", "kb_coeffs", "up_azimuth_deg",
                "tilt_deg", "max_zenith_deg", "vignetting", "gain_red", "gain_blue", "spectral_sensitivities")
+CAMERA_INFO_KEYS = ("convention", "rotation", "model", "tilt_zenith_deg", "tilt_azimuth_deg", "source", "photos",
+                    "nominal_projection", "lens_radial")
+"""Keys a camera file may carry for the reader's information (the camera is the CAMERA_KEYS'; ``nominal_projection``
+and ``lens_radial`` say which projection and lens departure its Kannala-Brandt polynomial writes)."""
 
 
 def read_camera(path: str | Path) -> dict:
@@ -171,8 +177,7 @@ def read_camera(path: str | Path) -> dict:
         raise PhotoFitError(f"camera file {p}: cannot read it: {str(e).splitlines()[0]}") from None
     if not isinstance(data, dict):
         raise PhotoFitError(f"camera file {p}: expected a mapping of camera parameters")
-    unknown = sorted(set(data) - set(CAMERA_KEYS) - {"convention", "rotation", "model", "tilt_zenith_deg",
-                                                     "tilt_azimuth_deg", "source", "photos"})
+    unknown = sorted(set(data) - set(CAMERA_KEYS) - set(CAMERA_INFO_KEYS))
     if unknown:
         raise PhotoFitError(f"camera file {p}: unknown key(s) {', '.join(unknown)}; valid: {', '.join(CAMERA_KEYS)}")
     if "spectral_sensitivities" in data and data["spectral_sensitivities"] is not None:
@@ -481,11 +486,65 @@ grey near grey (the three published cameras of the synthetic generator on daylig
 otherwise trade against the aerosol's whitening of the sky, which a photo's colour measures. [1]"""
 
 
+LENS_RADIAL_PRIOR_SIGMA = 0.03
+"""Prior of ``lens_radial`` k (:func:`skyfit.fit.model.lens_directions`) when a photo fit frees it (``free=``):
+Gaussian about 0 with this sigma. k = 0.03 moves a ray at 52 deg from the axis (the largest shift) by 2.6 deg: a
+fisheye that departs from its nominal projection by a few per cent of the radius, as real ones do, and the
+Kannala-Brandt lenses of the synthetic generator (k1 within +-0.05) seen as equidistant. [1]"""
+LENS_RADIAL_PROJECTIONS = ("equidistant", "equisolid", "stereographic")
+"""Projections whose lens departure is measured (:func:`lens_from_sun`) or freed: an orthographic lens's radius stops
+growing at 90 deg, which no monotone Kannala-Brandt polynomial (the fitted camera of :func:`lens_camera`) follows."""
+LENS_SUN_MIN_DEG = 0.75
+"""The lens departure is measured only where the first pass leaves a compact sun this far from its detection in
+angle from the axis: 2.5 x :data:`SUN_DATUM_SIGMA_DEG` (compact detections lie within 0.73 deg of the true sun on
+the synthetic suite); below it the chosen projection stands. [deg]"""
+LENS_SUN_ZENITH_DEG = (10.0, 80.0)
+"""Angles from the axis within which the sun measures the lens: near the axis and near the 90-degree circle the
+departure vanishes (k theta ((pi/2)^2 - theta^2)), and a tilt's share would be divided by almost nothing. [deg]"""
+LENS_RADIAL_MAX = 0.08
+"""Largest |lens_radial| the sun may set (the generator's Kannala-Brandt k1 lie within 0.05). [1]"""
+
+
+def lens_from_sun(problem: "PhotoProblem", x: torch.Tensor, projection: str) -> tuple[float | None, str]:
+    """The lens departure k (``lens_radial``) that puts a compact detected sun, at the fitted tilt and heading, at
+    the computed sun's angle from the optical axis: theta_s = theta_p + k theta_p ((pi/2)^2 - theta_p^2), theta_p the
+    detected pixel's angle under the nominal projection and theta_s the fitted sun's in the camera frame (the
+    tilt undone). One radial datum, one radial parameter: the sky pattern, which trades a lens against the aerosol
+    (free in the fit, it moved two of the synthetic suite's lenses by 1.7-4 deg), has no say. None (with why) where
+    the sun is extended or missing, the projection orthographic, the sun outside :data:`LENS_SUN_ZENITH_DEG`, or its
+    radial miss below :data:`LENS_SUN_MIN_DEG`."""
+    sun = problem.sun
+    if sun is None or sun.sigma_deg > SUN_DATUM_SIGMA_DEG:
+        return None, "no compact sun"
+    if projection not in LENS_RADIAL_PROJECTIONS:
+        return None, f"{projection} lens"
+    with torch.no_grad():
+        phys = problem.param.to_physical(x)
+        tn, te = (phys[n].reshape(-1)[0].to(torch.float64) for n in ("camera_tilt_north", "camera_tilt_east"))
+        s = problem.sun_vectors(phys, 0).reshape(-1, 3)[0].to(torch.float64)
+        # the tilt undone: tilt_directions applies R_x(-tn) then R_y(te); here R_y(-te) then R_x(tn)
+        ce, se, cn, sn = torch.cos(te), torch.sin(te), torch.cos(tn), torch.sin(tn)
+        x1, z1 = s[0] * ce - s[2] * se, s[0] * se + s[2] * ce
+        y2, z2 = s[1] * cn - z1 * sn, s[1] * sn + z1 * cn
+        theta_s = float(torch.atan2(torch.hypot(x1, y2), z2))
+        d = sun.direction.to(torch.float64)
+        theta_p = float(torch.atan2(torch.hypot(d[0], d[1]), d[2]))
+    miss = math.degrees(theta_s - theta_p)
+    lo, hi = (math.radians(v) for v in LENS_SUN_ZENITH_DEG)
+    if not lo <= theta_p <= hi:
+        return None, f"sun {math.degrees(theta_p):.1f} deg from the axis"
+    if abs(miss) < LENS_SUN_MIN_DEG:
+        return None, f"sun within {abs(miss):.2f} deg of the projection"
+    k = (theta_s - theta_p) / (theta_p * ((math.pi / 2) ** 2 - theta_p**2))
+    k = max(-LENS_RADIAL_MAX, min(LENS_RADIAL_MAX, k))
+    return k, f"the sun {miss:+.2f} deg from the {projection} projection's angle"
+
+
 def camera_priors(free: Sequence[str]) -> dict:
-    """The camera's priors for the free names among ``vignetting``, ``gain_red``, ``gain_blue``:
+    """The camera's priors for the free names among ``vignetting``, ``gain_red``, ``gain_blue``, ``lens_radial``:
     name -> (kind, mean, sigma), kind ``linear`` (on the value) or ``log`` (on its logarithm)."""
     table = {"vignetting": ("linear",) + VIGNETTING_PRIOR, "gain_red": ("log", 0.0, GAIN_PRIOR_LOG_SIGMA),
-             "gain_blue": ("log", 0.0, GAIN_PRIOR_LOG_SIGMA)}
+             "gain_blue": ("log", 0.0, GAIN_PRIOR_LOG_SIGMA), "lens_radial": ("linear", 0.0, LENS_RADIAL_PRIOR_SIGMA)}
     return {n: table[n] for n in free if n in table}
 
 
@@ -551,6 +610,9 @@ class PhotoProblem(FitProblem):
     """Follow the lagged multiple-scattering factor in the aerosol optical depth (:func:`follows_aod`)."""
     trust: tuple[float, float] | None = None
     """(ln tau_0, T): the lagged fit's trust region in the aerosol optical depth (:data:`MS_AOD_TRUST`), or None."""
+    angstrom_range: tuple[float, float] | None = None
+    """(lo, hi): the Angstrom exponents an aerosol can have (:data:`ANGSTROM_RANGE`), a wall beyond them when
+    ``mie_angstrom_alpha`` is free; None: no wall."""
 
     @classmethod
     def of(cls, problem: FitProblem, priors: dict, sun: SunDatum | None = None) -> "PhotoProblem":
@@ -572,6 +634,9 @@ class PhotoProblem(FitProblem):
         if tn.ndim:
             tn, te = tn[0], te[0]
         d = self.sun.direction.to(dtype=tn.dtype, device=tn.device)
+        k = phys.get("lens_radial")
+        if k is not None and ("lens_radial" in self.param.free or float(k.reshape(-1)[0]) != 0.0):
+            d = lens_directions(d, k.reshape(-1)[0])  # the detected pixel seen through the fitted lens
         view = tilt_directions(d, tn, te)
         sun = self.sun_vectors(phys, 0)
         if sun.ndim == 2:
@@ -598,6 +663,10 @@ class PhotoProblem(FitProblem):
         if self.trust is not None:
             excess = torch.relu((torch.log(phys["mie_aod_550"]) - self.trust[0]).abs() - self.trust[1])
             loss = loss + TRUST_WEIGHT * excess * excess
+        if self.angstrom_range is not None and "mie_angstrom_alpha" in self.param.free:
+            a = phys["mie_angstrom_alpha"]
+            excess = torch.relu(self.angstrom_range[0] - a) + torch.relu(a - self.angstrom_range[1])
+            loss = loss + TRUST_WEIGHT * (excess * excess).sum()
         return loss
 
 
@@ -712,9 +781,11 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
             bruneton = make_model(settings)
             settings = dataclasses.replace(settings, orders=1)
         prep = prepare([obs], config, settings, device=device)
-        problem = PhotoProblem.of(prep.problem(settings.free, settings.per_observation, {**settings.initial, **(start or {})}),
-                                  camera_priors(settings.free), sun_datum(sc.camera, sc.detected_sun))
+        free = [n for n in settings.free if n != "lens_radial" or sc.camera.projection in LENS_RADIAL_PROJECTIONS]
+        problem = PhotoProblem.of(prep.problem(free, settings.per_observation, {**settings.initial, **(start or {})}),
+                                  camera_priors(free), sun_datum(sc.camera, sc.detected_sun))
         problem.follow = settings.ms_follow
+        problem.angstrom_range = ANGSTROM_RANGE
         options = settings.options(progress)
         if (problem.priors or problem.sun is not None) and getattr(options, "method", None) not in (None, "lbfgs"):
             # the priors and the sun datum live in the objective, not in residuals
@@ -764,7 +835,12 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     t1 = _now()
     blocks, prep, problem, res = run(scene, start=start)
     timings["fit_pass1"] = _now() - t1
-    if second_pass:
+    lens = None
+    if not calibrated and "lens_radial" not in s.free:
+        lens, why = lens_from_sun(problem, res.x, scene.camera.projection)
+        if lens is not None:
+            scene.notes.append(f"lens departure lens_radial {lens:+.4f} measured from {why} (skyfit.fit.photo.lens_from_sun)")
+    if second_pass or lens is not None:
         t2 = _now()
         rel = relative_residual_map(problem, res.x, blocks, scene)
         grown = grow_outlier_mask(_upsample(np.nan_to_num(rel, nan=0.0), blocks.step, scene.photo.rgb.shape[:2]),
@@ -772,9 +848,14 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         # obstacles stand on the horizon or far from the sun; a misfit of the aureole is the model's, not a mask's
         elevation, to_sun = _sky_angles(scene.camera, scene.sun_zenith_deg, scene.sun_azimuth_deg)
         grown &= (elevation < OUTLIER_MAX_ELEVATION_DEG) | (to_sun > OUTLIER_SUN_DISTANCE_DEG)
-        if grown.any():
-            scene.masks["outliers"] = grown & ~scene.excluded
+        if not second_pass:
+            grown[:] = False
+        if grown.any() or lens is not None:
+            if grown.any():
+                scene.masks["outliers"] = grown & ~scene.excluded
             start2 = {n: v for n, v in problem.param.physical_dict(res.x).items() if n in s.free}
+            if lens is not None:
+                start2["lens_radial"] = lens  # held at the sun's value (not free)
             # the first pass's last tables are at start2: no build before the second pass's first fit
             last = problem.bruneton[1:] if getattr(problem, "bruneton", None) is not None else None
             blocks, prep, problem, res = run(scene, start=start2, settings=dataclasses.replace(s, adam_steps=0, starts=1),
@@ -919,7 +1000,14 @@ MS_AOD_SETTLE = 0.02
 aerosol optical depth by less than this (relative), inside its trust region: a fifth of the 15 % asked of a photo's
 AOD (issue 13), and what the factor's remaining change moves it by. [1]"""
 TRUST_WEIGHT = 1.0e3
-"""Weight of the trust region's penalty, w max(0, |ln tau - ln tau_0| - T)^2, on the scale of the loss per element."""
+"""Weight of the trust region's penalty, w max(0, |ln tau - ln tau_0| - T)^2, on the scale of the loss per element
+(and of the Angstrom exponent's wall, :data:`ANGSTROM_RANGE`)."""
+ANGSTROM_RANGE = (0.0, 2.5)
+"""Angstrom exponents a photo fit may reach: sun photometers measure about 0 (desert dust, sea salt) to 2.5 (fresh
+smoke) between 440 and 870 nm (Eck et al. 1999, J. Geophys. Res. 104, 31333; Dubovik et al. 2002, J. Atmos. Sci.
+59, 590). A photo's unknown white balance (free gains) leaves the sky's colour, and so alpha, to the camera: on the
+synthetic suite fits ended at -0.67 and 3.13, the second with the AOD at 13 % of the truth (docs/photos.md). Beyond
+the range the objective rises as :data:`TRUST_WEIGHT` times the excess squared, a wall rather than a prior inside. [1]"""
 
 
 def follows_aod(problem: FitProblem) -> bool:
@@ -1158,10 +1246,34 @@ def relative_residual_map(problem, x: torch.Tensor, blocks: BlockImage, scene: P
     return rel
 
 
+def lens_camera(cam: FisheyeCamera, k: float, nodes: int = 200) -> FisheyeCamera:
+    """The Kannala-Brandt camera whose pixels see what ``cam`` (an untilted classical projection) sees through
+    ``lens_radial`` k (:func:`skyfit.fit.model.lens_directions`): r = f (theta + k1 theta^3 + ... + k4 theta^9)
+    (Kannala & Brandt 2006, eq. 6) fitted by linear least squares to the radius r(theta) of ``nodes`` angles
+    up to the camera's field; ``cam`` itself when k = 0. Centre, heading and 90-degree circle are kept."""
+    if k == 0.0 or cam.projection == "kannala_brandt":
+        return cam
+    from ..camera.fisheye import theta_to_rho
+
+    top = math.radians(cam.max_zenith_deg)
+    tp = torch.linspace(0.0, top, nodes, dtype=torch.float64)
+    theta = tp + k * tp * ((math.pi / 2) ** 2 - tp * tp)  # the ray's true angle at the pixel of nominal angle tp
+    r = float(cam.r90) * theta_to_rho(tp, cam.projection)
+    A = torch.stack([theta ** (2 * j + 1) for j in range(5)], -1)
+    c = torch.linalg.lstsq(A, r[:, None]).solution[:, 0]
+    f = float(c[0])
+    meta = cam.to_metadata()
+    meta.update(projection="kannala_brandt", focal_px=f, kb_coeffs=[float(v) / f for v in c[1:]], radius_px=None,
+                nominal_projection=cam.projection, lens_radial=k)
+    return FisheyeCamera.from_metadata(meta)
+
+
 def camera_from_result(cam: FisheyeCamera, values: dict) -> FisheyeCamera:
-    """The photo's camera with the fitted heading and tilt (:func:`fitted_camera`)."""
+    """The photo's camera with the fitted heading and tilt (:func:`fitted_camera`), through the fitted lens
+    (:func:`lens_camera`) when ``lens_radial`` is not 0."""
     g = lambda n: float(values.get(n, 0.0)) if not isinstance(values.get(n), list) else float(values[n][0])  # noqa: E731
-    return fitted_camera(cam, g("sun_azimuth_offset"), g("camera_tilt_north"), g("camera_tilt_east"))
+    return fitted_camera(lens_camera(cam, g("lens_radial")), g("sun_azimuth_offset"), g("camera_tilt_north"),
+                         g("camera_tilt_east"))
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -1210,6 +1322,8 @@ def photo_result(scene: PhotoScene, blocks: BlockImage, prep, problem, res, conf
     cam_meta = cam.to_metadata()
     cam_meta.update(source="given" if not scene.candidates else "estimated from the image and the sun",
                     vignetting=vals.get("vignetting"), gain_red=vals.get("gain_red"), gain_blue=vals.get("gain_blue"))
+    if "lens_radial" in problem.param.free or vals.get("lens_radial"):
+        cam_meta.update(nominal_projection=scene.camera.projection, lens_radial=vals["lens_radial"])
     if scene.circle is not None:
         cam_meta["circle"] = dataclasses.asdict(scene.circle)
     if scene.candidates:

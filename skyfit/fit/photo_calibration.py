@@ -31,10 +31,11 @@ from ..camera.autocal import CalibrationError
 from ..camera.fisheye import FisheyeCamera
 from ..io.atomic import write_text_atomic
 from ..io.photo import read_photo
-from .photo import CAMERA_KEYS, PhotoFitError, fit_photo
+from .photo import CAMERA_INFO_KEYS, CAMERA_KEYS, PhotoFitError, fit_photo
 
-CAMERA_FILE_KEYS = ("projection", "size", "cx", "cy", "radius_px", "up_azimuth_deg", "tilt_deg", "max_zenith_deg",
-                    "vignetting", "gain_red", "gain_blue", "convention", "source", "photos")
+CAMERA_FILE_KEYS = ("projection", "size", "cx", "cy", "radius_px", "focal_px", "kb_coeffs", "nominal_projection", "lens_radial",
+                    "up_azimuth_deg", "tilt_deg", "max_zenith_deg", "vignetting", "gain_red", "gain_blue", "convention",
+                    "source", "photos")
 """The keys :func:`calibrate_camera` writes, in this order (all accepted by :func:`skyfit.fit.photo.read_camera`)."""
 
 
@@ -77,6 +78,9 @@ def _photo_entry(path, time: str, pf) -> dict:
     num = lambda v: None if v is None else float(v)  # noqa: E731
     return {
         "path": str(path), "time": str(time), "projection": cam.projection,
+        "nominal_projection": rc.get("nominal_projection", cam.projection), "lens_radial": float(rc.get("lens_radial") or 0.0),
+        **({"focal_px": float(meta["focal_px"]), "kb_coeffs": [float(v) for v in meta["kb_coeffs"]]}
+           if cam.projection == "kannala_brandt" else {}),
         "cx": float(meta["cx"]), "cy": float(meta["cy"]), "radius_px": float(meta["radius_px"]),
         "up_azimuth_deg": float(meta["up_azimuth_deg"]), "tilt_deg": [float(v) for v in meta["tilt_deg"]],
         "max_zenith_deg": float(meta["max_zenith_deg"]),
@@ -87,9 +91,14 @@ def _photo_entry(path, time: str, pf) -> dict:
     }
 
 
+def _nominal(entry: dict) -> str:
+    """The projection a photo's fit chose (its camera is Kannala-Brandt when the fitted lens departs from it)."""
+    return entry.get("nominal_projection") or entry["projection"]
+
+
 def choose_projection(entries: list[dict]) -> tuple[str, str]:
-    """The projection most photos chose; ties by the smallest summed sun-radius evidence. -> (name, why)."""
-    votes = collections.Counter(e["projection"] for e in entries)
+    """The projection most photos chose (:func:`_nominal`); ties by the smallest summed sun-radius evidence. -> (name, why)."""
+    votes = collections.Counter(_nominal(e) for e in entries)
     top = max(votes.values())
     tied = sorted(p for p, n in votes.items() if n == top)
 
@@ -112,7 +121,7 @@ def combine_cameras(entries: list[dict]) -> tuple[dict, dict]:
         raise PhotoFitError(f"calibrate-camera: the photos differ in size ({sizes}); one camera takes one image size")
     h, w = next(iter(shapes))
     projection, why = choose_projection(entries)
-    same = [e for e in entries if e["projection"] == projection]
+    same = [e for e in entries if _nominal(e) == projection]
     med = lambda es, k: float(np.median([e[k] for e in es]))  # noqa: E731
     cam = {"projection": projection, "size": [h, w]}
     spread: dict = {}
@@ -130,6 +139,15 @@ def combine_cameras(entries: list[dict]) -> tuple[dict, dict]:
         if vals:
             cam[k] = float(np.median(vals))
             spread[k] = _spread(vals, cam[k])
+    ks = [float(e.get("lens_radial") or 0.0) for e in same]
+    cam["lens_radial"] = float(np.median(ks))
+    spread["lens_radial"] = _spread(ks, cam["lens_radial"])
+    if cam["lens_radial"] != 0.0:  # the nominal projection through the median lens, as the Kannala-Brandt camera it is
+        from .photo import lens_camera
+
+        kb = lens_camera(camera_from_calibration(cam), cam["lens_radial"]).to_metadata()
+        cam.update(nominal_projection=projection, projection="kannala_brandt", focal_px=kb["focal_px"],
+                   kb_coeffs=[float(v) for v in kb["kb_coeffs"]])
     spread["projection"] = why
     return cam, spread
 
@@ -182,7 +200,7 @@ def calibrate_camera(photos: Sequence[str | Path], times: Sequence[str], locatio
                          "[deg]; up_azimuth_deg: azimuth of the image's up direction [deg]")
     cam["source"] = f"skyfit calibrate-camera from {len(entries)} photo(s)"
     cam["photos"] = entries
-    unknown = set(cam) - set(CAMERA_KEYS) - {"convention", "source", "photos"}
+    unknown = set(cam) - set(CAMERA_KEYS) - set(CAMERA_INFO_KEYS)
     assert not unknown, unknown  # read_camera accepts every key written
     cam["_spread"] = spread
     return cam
@@ -190,8 +208,8 @@ def calibrate_camera(photos: Sequence[str | Path], times: Sequence[str], locatio
 
 def camera_from_calibration(cam: dict) -> FisheyeCamera:
     """The :class:`FisheyeCamera` of a calibration dict (the one ``--camera`` rebuilds from the file)."""
-    meta = {k: v for k, v in cam.items() if k in ("projection", "size", "cx", "cy", "radius_px", "up_azimuth_deg", "tilt_deg",
-                                                  "max_zenith_deg")}
+    meta = {k: v for k, v in cam.items() if k in ("projection", "size", "cx", "cy", "radius_px", "focal_px", "kb_coeffs",
+                                                  "up_azimuth_deg", "tilt_deg", "max_zenith_deg")}
     h, w = cam["size"]
     meta["size"] = [h, w] if h != w else h
     return FisheyeCamera.from_metadata(meta)

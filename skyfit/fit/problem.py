@@ -97,6 +97,9 @@ class FitSettings:
     sky regions) or ``larger`` (an upper bound of both); skyfit.fit.budget, docs/uncertainty.md."""
     sigma_clusters: int = CLUSTERS
     """The sandwich's target number of sky-region clusters per observation (skyfit.fit.budget.sky_clusters)."""
+    sigma_phase: bool = False
+    """The total sigma's phase term: with a one-term Henyey-Greenstein phase and g free, the shift to a two-term
+    refit counts as an error (skyfit.fit.budget.phase_expansion; docs/uncertainty.md, "The phase term")."""
     ms_follow: bool = True
     """Photo fits: follow the multiple-scattering factor to first order in the aerosol optical depth between
     refreshes (one more table build per refresh; skyfit.fit.photo.aod_slope). False: hold it fixed, about half the
@@ -176,7 +179,7 @@ def check_setting(name: str, value, label: str, ranges: dict = SETTING_RANGES) -
     elif name in _STRINGS:
         if not isinstance(value, str):
             raise FitError(f"{label} must be a string, got {value!r}")
-    elif name in ("per_sample_sun", "ms_follow") and not isinstance(value, bool):
+    elif name in ("per_sample_sun", "ms_follow", "sigma_phase") and not isinstance(value, bool):
         raise FitError(f"{label} must be true or false, got {value!r}")
 
 

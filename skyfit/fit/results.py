@@ -67,7 +67,8 @@ def result_dict(problem: FitProblem, res: OptimiseResult, *, command: str, setti
                                         refits=int(st.get("sigma_refits", 0) or 0),
                                         options=FitOptions(starts=1, adam_steps=0, max_iter=int(st.get("max_iter", 100))),
                                         discrepancy=st.get("sigma_discrepancy") or DISCREPANCY_DEFAULT,
-                                        clusters=int(st.get("sigma_clusters") or CLUSTERS))
+                                        clusters=int(st.get("sigma_clusters") or CLUSTERS),
+                                        expand=bool(st.get("sigma_phase", False)))
     return result
 
 
