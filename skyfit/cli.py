@@ -498,7 +498,7 @@ FIT_FLAGS = {
     "max_iter": "max_iter", "adam_steps": "adam_steps", "seed": "seed", "wavelengths": "wavelengths",
     "min_elevation": "min_elevation_deg", "sun_mask": "sun_mask_deg", "max_samples": "max_samples",
     "sigma_relative": "sigma_relative", "accuracy": "accuracy", "sigma": "sigma", "optimiser": "optimiser",
-    "sigma_discrepancy": "sigma_discrepancy", "ms_follow": "ms_follow",
+    "sigma_discrepancy": "sigma_discrepancy", "ms_follow": "ms_follow", "sigma_phase": "sigma_phase",
 }
 """The per-fit flags of ``fit`` and ``batch`` (argparse dest -> FitSettings field)."""
 
@@ -544,6 +544,9 @@ def _add_fit_options(p, D) -> None:
     p.add_argument("--sigma-discrepancy", choices=DISCREPANCY_MODELS,
                    help=f"--sigma total's discrepancy term: a white relative error floor, a cluster-robust sandwich over "
                         f"sky regions, or the larger of the two (default {D.sigma_discrepancy}; docs/uncertainty.md)")
+    p.add_argument("--sigma-phase", dest="sigma_phase", action="store_true", default=None,
+                   help="--sigma total: add the phase term, the shift of a two-term Henyey-Greenstein refit (one-term HG "
+                        "fits with g free; one more fit; docs/uncertainty.md, \"The phase term\")")
     p.add_argument("--location", help="LAT,LON[,ELEV] [deg, deg, m]: a photo's place (required), Kider data's site "
                    "(default: the Kider site)")
     p.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")

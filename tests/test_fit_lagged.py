@@ -143,27 +143,6 @@ def test_trust_region_penalises_only_outside(sky):
         assert bounded - plain == pytest.approx(TRUST_WEIGHT * max(excess, 0.0) ** 2, rel=1e-9, abs=1e-12)
 
 
-def test_angstrom_wall_penalises_only_outside_the_range(sky):
-    """A photo fit's wall on the Angstrom exponent adds TRUST_WEIGHT times the excess beyond ANGSTROM_RANGE squared,
-    and nothing inside the range."""
-    from skyfit.fit.photo import ANGSTROM_RANGE, TRUST_WEIGHT, PhotoProblem
-
-    problem = PhotoProblem.of(_problem(sky, ["mie_aod_550", "mie_angstrom_alpha", "exposure"]), {})
-    freeze_tables(problem, problem.param.initial_vector(), problem.model.factor_model(), wavelength_nodes_count=None)
-    lo, hi = ANGSTROM_RANGE
-    for alpha in (lo - 0.2, lo - 0.01, lo + 0.3, 1.2, hi - 0.01, hi + 0.05, hi + 0.6):
-        vals = problem.param.free_dict(problem.param.initial_vector())
-        vals["mie_angstrom_alpha"] = alpha
-        x = problem.param.to_unconstrained(vals)
-        with torch.no_grad():
-            problem.angstrom_range = None
-            plain = float(problem.objective(x))
-            problem.angstrom_range = ANGSTROM_RANGE
-            walled = float(problem.objective(x))
-        excess = max(lo - alpha, 0.0) + max(alpha - hi, 0.0)
-        assert walled - plain == pytest.approx(TRUST_WEIGHT * excess**2, rel=1e-9, abs=1e-12)
-
-
 def test_fast_multiple_holds_the_factor(sky):
     """``ms_follow: false`` (``--fast-multiple``): one table build per refresh and no slope; the setting is checked."""
     from skyfit.fit.photo import PhotoProblem

@@ -300,6 +300,10 @@ def test_discrepancy_setting_reaches_the_budget_and_bad_values_fail():
         fit_settings({"sigma_discrepancy": "white"})
     with pytest.raises(FitError, match=r"fit.sigma_clusters must be >= 2, got 1"):
         fit_settings({"sigma_clusters": 1})
+    args = build_parser().parse_args(["fit", "sky.exr", "--config", "earth", "--out", "r.json", "--sigma-phase"])
+    assert fit_settings(None, _fit_overrides(args)).sigma_phase is True and fit_settings(None, {}).sigma_phase is False
+    with pytest.raises(FitError, match="sigma_phase must be true or false"):
+        fit_settings({"sigma_phase": "yes"})
     clean, view, _ = _clean(TRUTH, 8)
     prob = FitProblem(Parameterisation(_base(), ["exposure"]), _model(), [_observation(clean, NOISE * clean, view)],
                       make_loss("squared"))

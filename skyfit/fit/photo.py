@@ -498,9 +498,12 @@ LENS_SUN_MIN_DEG = 0.75
 """The lens departure is measured only where the first pass leaves a compact sun this far from its detection in
 angle from the axis: 2.5 x :data:`SUN_DATUM_SIGMA_DEG` (compact detections lie within 0.73 deg of the true sun on
 the synthetic suite); below it the chosen projection stands. [deg]"""
-LENS_SUN_ZENITH_DEG = (10.0, 80.0)
-"""Angles from the axis within which the sun measures the lens: near the axis and near the 90-degree circle the
-departure vanishes (k theta ((pi/2)^2 - theta^2)), and a tilt's share would be divided by almost nothing. [deg]"""
+LENS_LEVER_MIN = 1.0
+"""The sun measures the lens only where the departure's lever theta ((pi/2)^2 - theta^2) (d theta / d k) is at least
+this, the sun 25-75 deg from the axis: a compact datum (:data:`SUN_DATUM_SIGMA_DEG`) then fixes k to +-0.005. Near
+the axis and near the 90-degree circle the departure vanishes, and a detection's error (or a tilt's share) would be
+divided by almost nothing: on the synthetic suite a hazy single photo with the sun at 23 deg (lever 0.93) got
+k = 0.023 and rays 3.5 deg off (the cut was set after that case). [rad]"""
 LENS_RADIAL_MAX = 0.08
 """Largest |lens_radial| the sun may set (the generator's Kannala-Brandt k1 lie within 0.05). [1]"""
 
@@ -511,8 +514,8 @@ def lens_from_sun(problem: "PhotoProblem", x: torch.Tensor, projection: str) -> 
     detected pixel's angle under the nominal projection and theta_s the fitted sun's in the camera frame (the
     tilt undone). One radial datum, one radial parameter: the sky pattern, which trades a lens against the aerosol
     (free in the fit, it moved two of the synthetic suite's lenses by 1.7-4 deg), has no say. None (with why) where
-    the sun is extended or missing, the projection orthographic, the sun outside :data:`LENS_SUN_ZENITH_DEG`, or its
-    radial miss below :data:`LENS_SUN_MIN_DEG`."""
+    the sun is extended or missing, the projection orthographic, or its
+    radial miss below :data:`LENS_SUN_MIN_DEG`, or the sun where it hardly measures a lens (:data:`LENS_LEVER_MIN`)."""
     sun = problem.sun
     if sun is None or sun.sigma_deg > SUN_DATUM_SIGMA_DEG:
         return None, "no compact sun"
@@ -530,12 +533,12 @@ def lens_from_sun(problem: "PhotoProblem", x: torch.Tensor, projection: str) -> 
         d = sun.direction.to(torch.float64)
         theta_p = float(torch.atan2(torch.hypot(d[0], d[1]), d[2]))
     miss = math.degrees(theta_s - theta_p)
-    lo, hi = (math.radians(v) for v in LENS_SUN_ZENITH_DEG)
-    if not lo <= theta_p <= hi:
-        return None, f"sun {math.degrees(theta_p):.1f} deg from the axis"
+    lever = theta_p * ((math.pi / 2) ** 2 - theta_p**2)
+    if lever < LENS_LEVER_MIN:
+        return None, f"sun {math.degrees(theta_p):.1f} deg from the axis, where it hardly measures a lens"
     if abs(miss) < LENS_SUN_MIN_DEG:
         return None, f"sun within {abs(miss):.2f} deg of the projection"
-    k = (theta_s - theta_p) / (theta_p * ((math.pi / 2) ** 2 - theta_p**2))
+    k = (theta_s - theta_p) / lever
     k = max(-LENS_RADIAL_MAX, min(LENS_RADIAL_MAX, k))
     return k, f"the sun {miss:+.2f} deg from the {projection} projection's angle"
 
@@ -610,9 +613,6 @@ class PhotoProblem(FitProblem):
     """Follow the lagged multiple-scattering factor in the aerosol optical depth (:func:`follows_aod`)."""
     trust: tuple[float, float] | None = None
     """(ln tau_0, T): the lagged fit's trust region in the aerosol optical depth (:data:`MS_AOD_TRUST`), or None."""
-    angstrom_range: tuple[float, float] | None = None
-    """(lo, hi): the Angstrom exponents an aerosol can have (:data:`ANGSTROM_RANGE`), a wall beyond them when
-    ``mie_angstrom_alpha`` is free; None: no wall."""
 
     @classmethod
     def of(cls, problem: FitProblem, priors: dict, sun: SunDatum | None = None) -> "PhotoProblem":
@@ -663,10 +663,6 @@ class PhotoProblem(FitProblem):
         if self.trust is not None:
             excess = torch.relu((torch.log(phys["mie_aod_550"]) - self.trust[0]).abs() - self.trust[1])
             loss = loss + TRUST_WEIGHT * excess * excess
-        if self.angstrom_range is not None and "mie_angstrom_alpha" in self.param.free:
-            a = phys["mie_angstrom_alpha"]
-            excess = torch.relu(self.angstrom_range[0] - a) + torch.relu(a - self.angstrom_range[1])
-            loss = loss + TRUST_WEIGHT * (excess * excess).sum()
         return loss
 
 
@@ -785,7 +781,6 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         problem = PhotoProblem.of(prep.problem(free, settings.per_observation, {**settings.initial, **(start or {})}),
                                   camera_priors(free), sun_datum(sc.camera, sc.detected_sun))
         problem.follow = settings.ms_follow
-        problem.angstrom_range = ANGSTROM_RANGE
         options = settings.options(progress)
         if (problem.priors or problem.sun is not None) and getattr(options, "method", None) not in (None, "lbfgs"):
             # the priors and the sun datum live in the objective, not in residuals
@@ -1000,14 +995,7 @@ MS_AOD_SETTLE = 0.02
 aerosol optical depth by less than this (relative), inside its trust region: a fifth of the 15 % asked of a photo's
 AOD (issue 13), and what the factor's remaining change moves it by. [1]"""
 TRUST_WEIGHT = 1.0e3
-"""Weight of the trust region's penalty, w max(0, |ln tau - ln tau_0| - T)^2, on the scale of the loss per element
-(and of the Angstrom exponent's wall, :data:`ANGSTROM_RANGE`)."""
-ANGSTROM_RANGE = (0.0, 2.5)
-"""Angstrom exponents a photo fit may reach: sun photometers measure about 0 (desert dust, sea salt) to 2.5 (fresh
-smoke) between 440 and 870 nm (Eck et al. 1999, J. Geophys. Res. 104, 31333; Dubovik et al. 2002, J. Atmos. Sci.
-59, 590). A photo's unknown white balance (free gains) leaves the sky's colour, and so alpha, to the camera: on the
-synthetic suite fits ended at -0.67 and 3.13, the second with the AOD at 13 % of the truth (docs/photos.md). Beyond
-the range the objective rises as :data:`TRUST_WEIGHT` times the excess squared, a wall rather than a prior inside. [1]"""
+"""Weight of the trust region's penalty, w max(0, |ln tau - ln tau_0| - T)^2, on the scale of the loss per element."""
 
 
 def follows_aod(problem: FitProblem) -> bool:
