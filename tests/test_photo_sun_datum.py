@@ -68,6 +68,10 @@ def test_penalty_is_the_reported_separation(projection):
         chord = math.sqrt(2.0 * pen) * math.radians(datum.sigma_deg)
         sep = math.degrees(2.0 * math.asin(chord / 2.0))
         assert sep == pytest.approx(_separation_reported(cam, det, off, tn, te), abs=1e-9)
+        # sun_separation_deg (the lens refit's check) reads the same penalty at x
+        prob.param = types.SimpleNamespace(to_physical=lambda x, p=phys: p)
+        prob.sun_penalty = lambda p, prob=prob: fp.PhotoProblem.sun_penalty(prob, p)
+        assert fp.sun_separation_deg(prob, None) == pytest.approx(sep, abs=1e-9)
 
 
 def test_penalty_alone_puts_the_sun_on_the_detection():

@@ -46,7 +46,13 @@ the unconstrained vector x at the optimum x*, so that the reported sigma is the 
      least each along every direction, equal to the larger where one contains the other;
      :func:`loewner_upper`), less A^-1.
 
-Total: cov_x = H^-1 + D + dx dx^T, D the chosen model's share. ``sigma`` of the result is this total;
+3. **Phase** (optional, ``fit.sigma_phase``; :func:`phase_expansion`): a one-term Henyey-Greenstein fit refitted
+   with the two-term phase from x + dx; the shift e of every parameter (the asymmetry parameter for g) is treated
+   as an error, cov += e e^T. What a one-term fit absorbs of a backward lobe shows in no residual; this term asks
+   the data for the lobe instead (docs/uncertainty.md, "The phase term": it finds it on half the two-term skies of
+   the coverage study and moves g's coverage there from 0/10 to 1/10 and 2/10 at 68 / 95 %; off by default).
+
+Total: cov_x = H^-1 + D + dx dx^T (+ e e^T), D the chosen model's share. ``sigma`` of the result is this total;
 ``budget`` holds the parts (``sigma_noise``, ``sigma_numerical``, ``sigma_discrepancy`` of the chosen
 model, ``sigma_discrepancy_floor`` and ``sigma_discrepancy_sandwich`` of each where computed), the
 floor, the clusters (``discrepancy``), chi^2/dof and the shift. docs/uncertainty.md, "Coverage under

@@ -508,6 +508,17 @@ LENS_RADIAL_MAX = 0.08
 """Largest |lens_radial| the sun may set (the generator's Kannala-Brandt k1 lie within 0.05). [1]"""
 
 
+def sun_separation_deg(problem: "PhotoProblem", x: torch.Tensor) -> float:
+    """The angle between the detected sun (through the fitted lens and tilt) and the fitted sun at x, from the sun
+    datum's penalty 0.5 (chord / sigma)^2 (:meth:`PhotoProblem.sun_penalty`); NaN without a datum. [deg]"""
+    if problem.sun is None:
+        return math.nan
+    with torch.no_grad():
+        pen = float(problem.sun_penalty(problem.param.to_physical(x)))
+    chord = math.sqrt(2.0 * pen) * math.radians(problem.sun.sigma_deg)
+    return math.degrees(2.0 * math.asin(min(chord / 2.0, 1.0)))
+
+
 def lens_from_sun(problem: "PhotoProblem", x: torch.Tensor, projection: str) -> tuple[float | None, str]:
     """The lens departure k (``lens_radial``) that puts a compact detected sun, at the fitted tilt and heading, at
     the computed sun's angle from the optical axis: theta_s = theta_p + k theta_p ((pi/2)^2 - theta_p^2), theta_p the
@@ -833,9 +844,22 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     lens = None
     if not calibrated and "lens_radial" not in s.free:
         lens, why = lens_from_sun(problem, res.x, scene.camera.projection)
-        if lens is not None:
-            scene.notes.append(f"lens departure lens_radial {lens:+.4f} measured from {why} (skyfit.fit.photo.lens_from_sun)")
-    if second_pass or lens is not None:
+        if lens is not None:  # refit with the lens; kept only where the same data then fit better (the evidence)
+            start_l = {n: v for n, v in problem.param.physical_dict(res.x).items() if n in s.free}
+            start_l["lens_radial"] = lens
+            last = problem.bruneton[1:] if getattr(problem, "bruneton", None) is not None else None
+            fit_l = run(scene, start=start_l, settings=dataclasses.replace(s, adam_steps=0, starts=1), tables=last)
+            miss = sun_separation_deg(fit_l[2], fit_l[3].x)
+            kept = fit_l[3].loss < res.loss and miss < LENS_SUN_MIN_DEG
+            scene.notes.append(f"lens departure lens_radial {lens:+.4f} measured from {why} (skyfit.fit.photo.lens_from_sun); "
+                               f"{'kept' if kept else 'not kept'}: loss {fit_l[3].loss:.5g} with it, {res.loss:.5g} without, "
+                               f"the sun {miss:.2f} deg from its detection after the refit")
+            if kept:  # the refit must also keep the sun where the lens put it: else the sky disagrees with that lens
+                blocks, prep, problem, res = fit_l
+            else:
+                lens = None
+        timings["lens"] = _now() - t1 - timings["fit_pass1"]
+    if second_pass:
         t2 = _now()
         rel = relative_residual_map(problem, res.x, blocks, scene)
         grown = grow_outlier_mask(_upsample(np.nan_to_num(rel, nan=0.0), blocks.step, scene.photo.rgb.shape[:2]),
@@ -843,11 +867,8 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         # obstacles stand on the horizon or far from the sun; a misfit of the aureole is the model's, not a mask's
         elevation, to_sun = _sky_angles(scene.camera, scene.sun_zenith_deg, scene.sun_azimuth_deg)
         grown &= (elevation < OUTLIER_MAX_ELEVATION_DEG) | (to_sun > OUTLIER_SUN_DISTANCE_DEG)
-        if not second_pass:
-            grown[:] = False
-        if grown.any() or lens is not None:
-            if grown.any():
-                scene.masks["outliers"] = grown & ~scene.excluded
+        if grown.any():
+            scene.masks["outliers"] = grown & ~scene.excluded
             start2 = {n: v for n, v in problem.param.physical_dict(res.x).items() if n in s.free}
             if lens is not None:
                 start2["lens_radial"] = lens  # held at the sun's value (not free)
