@@ -151,3 +151,20 @@ def dataclasses_replace(obj, **kw):
     import dataclasses
 
     return dataclasses.replace(obj, **kw)
+
+
+def test_prior_strain_is_the_sum_of_squared_z_and_its_chi2_point():
+    """The second-basin check of a photo fit: 2 x the camera prior penalty is sum z^2 over gains (log-normal) and
+    vignetting (normal), and its threshold is chi^2's 99 % point with 3 degrees of freedom."""
+    from scipy.stats import chi2
+
+    priors = fp.camera_priors(["gain_red", "gain_blue", "vignetting", "mie_g"])
+    assert set(priors) == {"gain_red", "gain_blue", "vignetting"}
+    phys = {"gain_red": _t(1.48), "gain_blue": _t(0.56), "vignetting": _t(-0.49)}
+    strain = 2.0 * float(fp.PhotoProblem.prior_penalty(types.SimpleNamespace(priors=priors), phys))
+    mean_v, sig_v = fp.VIGNETTING_PRIOR
+    want = ((math.log(1.48) / fp.GAIN_PRIOR_LOG_SIGMA) ** 2 + (math.log(0.56) / fp.GAIN_PRIOR_LOG_SIGMA) ** 2
+            + ((-0.49 - mean_v) / sig_v) ** 2)
+    assert strain == pytest.approx(want, rel=1e-12) and strain > fp.PRIOR_STRAIN_CHI2  # synthetic case 12's first fit
+    assert fp.PRIOR_STRAIN_CHI2 == pytest.approx(chi2.ppf(0.99, 3), abs=0.01)
+    assert fp.PROBE_AOD[0] < fp.PROBE_AOD[1]
