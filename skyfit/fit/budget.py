@@ -77,7 +77,7 @@ from ..transmittance import make_integrator
 from .laplace import covariance_summary, derived_functions, display_names, laplace_summary, physical_slot_values, transform_jacobian
 from .model import FitProblem, SkyModel
 from .optimise import FitOptions, fit
-from .parameters import MIE_G2_DEFAULT, MIE_HG_WEIGHT_DEFAULT, NUISANCE, PARAMETERS, TWO_TERM_HG, FitError, Parameterisation, inside_bounds
+from .parameters import MIE_G2_DEFAULT, MIE_HG_WEIGHT_DEFAULT, NUISANCE, TWO_TERM_HG, FitError, Parameterisation, inside_bounds
 
 SIGMA_MODES = ("total", "noise")
 """``fit.sigma``: ``total`` (noise + numerical + discrepancy, the default) or ``noise`` (the Laplace sigma of the noise alone)."""

@@ -212,6 +212,16 @@ def lens_directions(d: Tensor, k: Tensor) -> Tensor:
     return torch.stack([x * ratio, y * ratio, torch.cos(new)], -1)
 
 
+def applied_lens(problem: "FitProblem", phys: dict, i: int) -> Tensor | None:
+    """Observation i's ``lens_radial`` k where the problem applies it (free, or held at a value other than 0), else
+    None; shared by :meth:`FitProblem.view_directions` and a photo's sun datum."""
+    k = phys.get("lens_radial")
+    if k is None:
+        return None
+    k = k[i] if k.ndim else k
+    return k if "lens_radial" in problem.param.free or float(k) != 0.0 else None
+
+
 def tilt_directions(d: Tensor, tilt_north: Tensor, tilt_east: Tensor) -> Tensor:
     """Instrument directions (..., 3) in the world frame of an instrument whose zenith axis is tilted by
     ``tilt_north`` toward North and ``tilt_east`` toward East: R_y(tilt_east) R_x(-tilt_north) d (ENU axes). [rad]"""
@@ -267,8 +277,9 @@ class FitProblem:
     def view_directions(self, phys: dict, i: int) -> Tensor:
         """Observation i's used view directions in the world frame, shape (N_i, 3).
 
-        Image data with ``lens_radial`` free first move each direction radially about the optical axis
-        (:func:`lens_directions`; the observation's directions are those of its camera's nominal projection).
+        Image data with ``lens_radial`` free or held at a value other than 0 (:func:`applied_lens`) first move each
+        direction radially about the optical axis (:func:`lens_directions`; the observation's directions are those
+        of its camera's nominal projection).
 
         The instrument's zenith axis is tilted by ``camera_tilt_north`` toward North and
         ``camera_tilt_east`` toward East: world = R_y(tilt_east) R_x(-tilt_north) instrument
@@ -280,11 +291,9 @@ class FitProblem:
         if tn.ndim:
             tn, te = tn[i], te[i]
         d = o.directions[o.mask]
-        k = phys.get("lens_radial")
-        if k is not None and o.image_radius is not None:
-            k = k[i] if k.ndim else k
-            if "lens_radial" in self.param.free or float(k) != 0.0:
-                d = lens_directions(d, k)  # image data: the lens's own projection
+        k = applied_lens(self, phys, i) if o.image_radius is not None else None
+        if k is not None:
+            d = lens_directions(d, k)  # image data: the lens's own projection
         return tilt_directions(d, tn, te)
 
     def frozen_factor_at(self, atm: Atmosphere, i: int) -> Tensor:

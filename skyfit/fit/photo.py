@@ -45,12 +45,12 @@ import torch
 from ..atmosphere.constants import PRESSURE_SCALE_HEIGHT_M
 from ..camera.autocal import (CalibrationError, CameraGuess, Circle, SunDetection, cameras_from_sun, detect_circle,
                               detect_sun, symmetry_axis)
-from ..camera.fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, zenith_azimuth_to_enu
+from ..camera.fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, theta_to_rho, zenith_azimuth_to_enu
 from ..camera.masks import SUN_MASK_MAX_DEG, grow_outlier_mask, obstacle_mask, sun_mask
 from ..camera.sun import parse_location, parse_time, sun_position
 from ..io.photo import LinearPhoto, read_photo
 from .data import Observation
-from .model import FitProblem, aerosol_log_depth, lens_directions, tilt_directions
+from .model import FitProblem, aerosol_log_depth, applied_lens, lens_directions, tilt_directions
 from .optimise import fit as optimise
 from .problem import fit_settings, make_model, prepare
 
@@ -536,11 +536,9 @@ def lens_from_sun(problem: "PhotoProblem", x: torch.Tensor, projection: str) -> 
         phys = problem.param.to_physical(x)
         tn, te = (phys[n].reshape(-1)[0].to(torch.float64) for n in ("camera_tilt_north", "camera_tilt_east"))
         s = problem.sun_vectors(phys, 0).reshape(-1, 3)[0].to(torch.float64)
-        # the tilt undone: tilt_directions applies R_x(-tn) then R_y(te); here R_y(-te) then R_x(tn)
-        ce, se, cn, sn = torch.cos(te), torch.sin(te), torch.cos(tn), torch.sin(tn)
-        x1, z1 = s[0] * ce - s[2] * se, s[0] * se + s[2] * ce
-        y2, z2 = s[1] * cn - z1 * sn, s[1] * sn + z1 * cn
-        theta_s = float(torch.atan2(torch.hypot(x1, y2), z2))
+        # the tilt undone: tilt_directions(I) has the rotated axes R e_j as rows, so it applied to s is R^T s
+        c = tilt_directions(torch.eye(3, dtype=torch.float64), tn, te) @ s
+        theta_s = float(torch.atan2(torch.hypot(c[0], c[1]), c[2]))
         d = sun.direction.to(torch.float64)
         theta_p = float(torch.atan2(torch.hypot(d[0], d[1]), d[2]))
     miss = math.degrees(theta_s - theta_p)
@@ -655,9 +653,9 @@ class PhotoProblem(FitProblem):
         if tn.ndim:
             tn, te = tn[0], te[0]
         d = self.sun.direction.to(dtype=tn.dtype, device=tn.device)
-        k = phys.get("lens_radial")
-        if k is not None and ("lens_radial" in self.param.free or float(k.reshape(-1)[0]) != 0.0):
-            d = lens_directions(d, k.reshape(-1)[0])  # the detected pixel seen through the fitted lens
+        k = applied_lens(self, phys, 0)
+        if k is not None:
+            d = lens_directions(d, k)  # the detected pixel seen through the fitted lens
         view = tilt_directions(d, tn, te)
         sun = self.sun_vectors(phys, 0)
         if sun.ndim == 2:
@@ -866,6 +864,7 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     timings["fit_pass1"] = _now() - t1
     lens = None
     if not calibrated and "lens_radial" not in s.free:
+        t_lens = _now()
         lens, why = lens_from_sun(problem, res.x, scene.camera.projection)
         if lens is not None:  # refit with the lens; kept only where the same data then fit better (the evidence)
             start_l = {n: v for n, v in problem.param.physical_dict(res.x).items() if n in s.free}
@@ -881,7 +880,7 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
                 blocks, prep, problem, res = fit_l
             else:
                 lens = None
-        timings["lens"] = _now() - t1 - timings["fit_pass1"]
+        timings["lens"] = _now() - t_lens
     if second_pass:
         t2 = _now()
         rel = relative_residual_map(problem, res.x, blocks, scene)
@@ -1285,8 +1284,6 @@ def lens_camera(cam: FisheyeCamera, k: float, nodes: int = 200) -> FisheyeCamera
     up to the camera's field; ``cam`` itself when k = 0. Centre, heading and 90-degree circle are kept."""
     if k == 0.0 or cam.projection == "kannala_brandt":
         return cam
-    from ..camera.fisheye import theta_to_rho
-
     top = math.radians(cam.max_zenith_deg)
     tp = torch.linspace(0.0, top, nodes, dtype=torch.float64)
     theta = tp + k * tp * ((math.pi / 2) ** 2 - tp * tp)  # the ray's true angle at the pixel of nominal angle tp

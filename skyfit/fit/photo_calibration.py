@@ -31,7 +31,7 @@ from ..camera.autocal import CalibrationError
 from ..camera.fisheye import FisheyeCamera
 from ..io.atomic import write_text_atomic
 from ..io.photo import read_photo
-from .photo import CAMERA_INFO_KEYS, CAMERA_KEYS, PhotoFitError, fit_photo
+from .photo import CAMERA_INFO_KEYS, CAMERA_KEYS, PhotoFitError, fit_photo, lens_camera
 
 CAMERA_FILE_KEYS = ("projection", "size", "cx", "cy", "radius_px", "focal_px", "kb_coeffs", "nominal_projection", "lens_radial",
                     "up_azimuth_deg", "tilt_deg", "max_zenith_deg", "vignetting", "gain_red", "gain_blue", "convention",
@@ -143,8 +143,6 @@ def combine_cameras(entries: list[dict]) -> tuple[dict, dict]:
     cam["lens_radial"] = float(np.median(ks))
     spread["lens_radial"] = _spread(ks, cam["lens_radial"])
     if cam["lens_radial"] != 0.0:  # the nominal projection through the median lens, as the Kannala-Brandt camera it is
-        from .photo import lens_camera
-
         kb = lens_camera(camera_from_calibration(cam), cam["lens_radial"]).to_metadata()
         cam.update(nominal_projection=projection, projection="kannala_brandt", focal_px=kb["focal_px"],
                    kb_coeffs=[float(v) for v in kb["kb_coeffs"]])
