@@ -196,7 +196,7 @@ def one_sky(k: int, args) -> dict:
            "discrepancy": {name: {kk: b["budget"].get(kk) for kk in ("discrepancy", "sigma_discrepancy")}
                            for name, b in sigmas.items()},
            "convergence": res.convergence["reason"], "loss": res.loss,
-           "phase_expansion": None if expansion is None else {k: expansion[k] for k in ("values", "loss", "converged", "seconds")},
+           "phase_expansion": None if expansion is None else {k: expansion[k] for k in ("values", "loss", "converged", "seconds", "spread")},
            "cpu_s": {"truth_render": info["truth_render_cpu_s"], "fit": c_fit, "uncertainty": c_unc},
            "n_samples": info["n_samples"]}
     for name in sigmas:

@@ -214,8 +214,54 @@ def test_phase_term_covers_the_asymmetry_parameter_of_a_two_term_sky(phase):
     else:
         assert ex["values"]["hg_weight"] > 0.97 and total["budget"]["sigma_phase"]["mie_g"] < 0.01
         assert z(total, "mie_g", TRUTH["mie_g"]) < 2
+    spread = total["budget"]["sigma_phase_spread"]["mie_g"]
     assert total["budget"]["sigma_phase"]["mie_g"] == pytest.approx(
-        math.sqrt(total["sigma"]["mie_g"] ** 2 - floor["sigma"]["mie_g"] ** 2), rel=0.05)
+        math.sqrt(total["sigma"]["mie_g"] ** 2 - floor["sigma"]["mie_g"] ** 2 - spread**2), rel=0.05, abs=1e-4)
+    sp = ex["spread"]
+    if phase == "two_term_hg":  # the lobe found: the spread is the two-term fit's own Laplace sigma of its asymmetry,
+        # against the delta method on the autograd Hessian of a two-term fit of the same data (to 15 %)
+        from skyfit.fit.parameters import TWO_TERM_HG
+        two = FitProblem(Parameterisation(_base(), FREE + list(TWO_TERM_HG), values={
+            "mie_g": ex["values"]["g1"], "mie_g2": ex["values"]["g2"], "mie_hg_weight": ex["values"]["hg_weight"]}),
+            prob.model, prob.observations, prob.loss)
+        r2 = fit(two, TIGHT, x0=two.param.initial_vector())
+        lap2 = laplace_summary(two, r2.x)
+        names, C = lap2["names"], torch.tensor(lap2["covariance"], dtype=torch.float64)
+        v = two.param.physical_dict(r2.x)
+        grad = {"mie_g": v["mie_hg_weight"], "mie_g2": 1 - v["mie_hg_weight"], "mie_hg_weight": v["mie_g"] - v["mie_g2"]}
+        a = torch.tensor([grad.get(n, 0.0) for n in names], dtype=C.dtype)
+        assert sp["lobe"] and sp["sigma_asymmetry"] == pytest.approx(math.sqrt(float(a @ C @ a)), rel=0.15)
+    else:  # no lobe: g2 costs nothing, the spread is the largest over the backward lobes tried, > the noise's sigma
+        assert not sp["lobe"] and sp["sigma_asymmetry"] > 3 * floor["sigma"]["mie_g"]
+
+
+def test_phase_spread_without_a_lobe_is_the_profile_in_the_weight():
+    """Where the two-term refit ends at f = 1 (an HG sky) the phase spread holds g2 at each backward lobe tried and
+    takes the Gauss-Newton sigma of f there (the model is linear in f). Brute force: refitting every other parameter
+    with f held one sigma below 1 (g2 at the lobe that gave the largest spread) raises chi^2 by 1 +- 0.3, and
+    two sigmas by 4 +- 1.2 (the profile of a Gaussian likelihood); the asymmetry then moves by about its sigma."""
+    from skyfit.fit.budget import numerical_term as nt, phase_expansion
+    from skyfit.fit.parameters import TWO_TERM_HG
+
+    prob, x, lap = _sky(0)
+    ex = phase_expansion(prob, x, nt(prob, x, lap, numerical=False), reference=prob.model)
+    sp = ex["spread"]
+    assert not sp["lobe"] and sp["sigma_weight"] > 0
+    w = prob.param.physical_dict(x)
+    free = [n for n in FREE if n != "exposure"] + ["exposure"]
+    base_loss, shifted = None, []
+    for k in (0.0, 1.0, 2.0):
+        f = sp["hg_weight"] - k * sp["sigma_weight"]
+        vals = {**{n: w[n] for n in free}, "mie_g2": sp["g2"], "mie_hg_weight": f}
+        held = FitProblem(Parameterisation(_base(), free, values=vals), prob.model, prob.observations, prob.loss)
+        assert set(TWO_TERM_HG) & set(held.param._overridden)
+        res = fit(held, TIGHT)
+        n_loss = 2.0 * float(res.loss) * held.n_elements  # chi^2: the loss is r^2 / 2 per element
+        if base_loss is None:
+            base_loss = n_loss
+        else:
+            shifted.append(n_loss - base_loss)
+    assert shifted[0] == pytest.approx(1.0, abs=0.3) and shifted[1] == pytest.approx(4.0, abs=1.2), shifted
 
 
 def test_jackknife_is_the_refit_without_each_sky_region():

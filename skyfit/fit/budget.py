@@ -47,12 +47,13 @@ the unconstrained vector x at the optimum x*, so that the reported sigma is the 
      :func:`loewner_upper`), less A^-1.
 
 3. **Phase** (optional, ``fit.sigma_phase``; :func:`phase_expansion`): a one-term Henyey-Greenstein fit refitted
-   with the two-term phase from x + dx; the shift e of every parameter (the asymmetry parameter for g) is treated
-   as an error, cov += e e^T. What a one-term fit absorbs of a backward lobe shows in no residual; this term asks
-   the data for the lobe instead (docs/uncertainty.md, "The phase term": it finds it on half the two-term skies of
-   the coverage study and moves g's coverage there from 0/10 to 1/10 and 2/10 at 68 / 95 %; off by default).
+   with the two-term phase from x + dx. What a one-term fit absorbs of a backward lobe shows in no residual; this
+   term asks the data for the lobe instead. Its spread S (:func:`expansion_spread`: the two-term refit's covariance
+   mapped onto the one-term parameters, g standing for the asymmetry parameter; where the refit found no lobe, the
+   profile over the backward lobes the data cannot rule out) bounds the total from below (:func:`loewner_upper`),
+   and the shift e of every parameter is treated as an error, cov += e e^T (docs/uncertainty.md, "The phase term").
 
-Total: cov_x = H^-1 + D + dx dx^T (+ e e^T), D the chosen model's share. ``sigma`` of the result is this total;
+Total: cov_x = H^-1 + D + dx dx^T (+ S' + e e^T), D the chosen model's share, S' what the spread adds. ``sigma`` of the result is this total;
 ``budget`` holds the parts (``sigma_noise``, ``sigma_numerical``, ``sigma_discrepancy`` of the chosen
 model, ``sigma_discrepancy_floor`` and ``sigma_discrepancy_sandwich`` of each where computed), the
 floor, the clusters (``discrepancy``), chi^2/dof and the shift. docs/uncertainty.md, "Coverage under
@@ -599,7 +600,8 @@ def phase_expansion(problem: FitProblem, x: Tensor, term: NumericalTerm, *, refe
     numerical error). The two-term phase's asymmetry parameter f g1 + (1 - f) g2 stands for ``mie_g``.
 
     Returns None where :func:`expansion_applies` is False, else ``e`` (P,) [x units]: the refit's values mapped
-    back into x minus x + dx, ``values`` (the refit's physical g1, g2, f and asymmetry), ``loss`` (the refit's
+    back into x minus x + dx, ``covariance`` (P, P) [x units^2] and ``spread`` (its summary) from
+    :func:`expansion_spread`, ``values`` (the refit's physical g1, g2, f and asymmetry), ``loss`` (the refit's
     and the one-term fit's corrected loss) and ``seconds``.
     """
     if not expansion_applies(problem):
@@ -631,9 +633,100 @@ def phase_expansion(problem: FitProblem, x: Tensor, term: NumericalTerm, *, refe
         raise FitError(f"the two-term refit's values lie outside the one-term parameters' ranges: {mapped}") from None
     with torch.no_grad():
         base_loss = float(problem.loss_from_predictions(term.m_cor, p.to_physical(xc)))
+    spread = expansion_spread(problem, x, ep, res.x, w)
     return {"e": (x_new - xc.to(torch.float64)).detach(), "values": {"g1": w["mie_g"], "g2": w["mie_g2"],
             "hg_weight": w["mie_hg_weight"], "asymmetry": asym}, "loss": {"two_term": float(res.loss), "one_term": base_loss},
+            "covariance": spread["covariance"], "spread": {k: v for k, v in spread.items() if k != "covariance"},
             "converged": bool(res.convergence.get("converged", False)), "seconds": time.perf_counter() - t0}
+
+
+PHASE_EDGE = 0.02
+"""A two-term refit with weight f above 1 - this found no backward lobe: its g2 is then not measured. [1]"""
+
+PHASE_G2_PROFILE = (-0.9, -0.6, -0.3, -0.05)
+"""Backward lobes tried where the refit found none (:func:`expansion_spread`): the range two-term fits of aerosol
+phase functions take, inside mie_g2's open range (-1, 0). [1]"""
+
+PHASE_WEIGHT_PROBE = 1e-3
+"""Where the refit found no lobe, its covariance is taken at f = 1 - this, where every g2 fits alike (the model is
+linear in f; at f = 1 exactly the sigmoid's slope rounds to 0). [1]"""
+
+
+def _natural_covariance(problem: FitProblem, x: Tensor) -> Tensor:
+    """Gauss-Newton covariance of ``problem``'s free slots at x in physical units (P, P), with the relative floor
+    that brings chi^2 of its own residuals to the degrees of freedom (module docstring, term 2). [SI^2]"""
+    x = x.detach()
+    phys = {k: v.detach() for k, v in problem.param.to_physical(x).items()}
+    with torch.no_grad():
+        m = problem.predict(x)
+    m_c = [problem.censor(v, i) for i, v in enumerate(m)]
+    floor = 0.0
+    if problem.loss.rho == "squared" and problem.loss.residual in ("linear", "log"):
+        _, n = chi2_with_floor(problem, m_c, 0.0, phys)
+        floor = fit_floor(problem, m_c, max(n - x.numel(), 1), phys)
+    C = gauss_newton_covariance(problem, prediction_jacobian(problem, x), m, floor, phys)
+    T = transform_jacobian(problem, x.to(torch.float64))
+    return T[:, None] * C * T[None, :]
+
+
+def expansion_spread(problem: FitProblem, x: Tensor, wide: FitProblem, x_wide: Tensor, w: dict) -> dict:
+    """What the two-term refit lets every parameter of the one-term fit be: its covariance mapped into x (P, P).
+
+    The one-term fit's ``mie_g`` stands for the asymmetry parameter A = f g1 + (1 - f) g2, the other parameters
+    for themselves, so the refit's Gauss-Newton covariance (with its own relative floor) maps through
+    dA = f dg1 + (1 - f) dg2 + (g1 - g2) df. Where the refit found a lobe (1 - f >= :data:`PHASE_EDGE`) that is
+    the Laplace spread at its optimum. Where it found none (f at 1) g2 costs nothing and is not measured: the
+    profile likelihood of A is then the union over g2 of the spreads with g2 held (the data bound f, and
+    A moves by (g1 - g2) df), here the largest over :data:`PHASE_G2_PROFILE`, f and g2 held fixed in turn:
+    not the linearisation at g2 free, which at f -> 1 lets A move by (1 - f) dg2 beyond |g2| <= 1.
+
+    Args:
+        problem, x: the one-term fit and its optimum; wide, x_wide: the two-term refit's problem and optimum;
+            w: its physical values.
+
+    Returns:
+        ``covariance`` (P, P) in the units of x, float64 (at x's transform), ``sigma_asymmetry`` [1], ``g2``
+        (the refit's, or the profile's g2 that gave the largest spread), ``hg_weight`` f where the covariance was
+        taken and ``sigma_weight`` (f's sigma there) [1], ``lobe`` (whether the refit found one).
+    """
+    p, wp = problem.param, wide.param
+    names1 = display_names(problem)
+    lobe = 1.0 - float(w["mie_hg_weight"]) >= PHASE_EDGE
+    candidates = []
+    if lobe:
+        candidates.append((wide, x_wide.detach(), dict(w)))
+    else:
+        for g2 in PHASE_G2_PROFILE:
+            vals = {n: wp.values[n] for n in wp._overridden}
+            vals.update({n: wp.values[n] for n in NUISANCE})
+            vals.update({n: inside_bounds(n, v) for n, v in w.items() if n in wp.free})
+            vals.update(mie_g2=g2, mie_hg_weight=1.0 - PHASE_WEIGHT_PROBE)  # no lobe: f at 1, where g2 costs nothing
+            held = Parameterisation(wp.base, [n for n in wp.free if n != "mie_g2"], wp.n_observations, wp.per_observation, vals)
+            q = copy.copy(wide)
+            q.param = held
+            x_held = held.initial_vector(x_wide.dtype, x.device)
+            candidates.append((q, x_held, held.physical_dict(x_held)))
+    T1 = transform_jacobian(problem, x.detach().to(torch.float64))
+    best = None
+    for q, xq, v in candidates:
+        C2 = _natural_covariance(q, xq)
+        names2 = display_names(q)
+        f, g1, g2 = float(v["mie_hg_weight"]), float(v["mie_g"]), float(v["mie_g2"])
+        M = torch.zeros(len(names1), len(names2), dtype=torch.float64)
+        for i, n in enumerate(names1):
+            if n == "mie_g":
+                for m_, c in (("mie_g", f), ("mie_g2", 1.0 - f), ("mie_hg_weight", g1 - g2)):
+                    if m_ in names2:
+                        M[i, names2.index(m_)] = c
+            else:
+                M[i, names2.index(n)] = 1.0
+        C1 = M @ C2.to(torch.float64) @ M.T
+        s_a = math.sqrt(max(float(C1[names1.index("mie_g"), names1.index("mie_g")]), 0.0))
+        if best is None or s_a > best["sigma_asymmetry"]:
+            k = names2.index("mie_hg_weight")
+            best = {"covariance": C1 / (T1[:, None] * T1[None, :]), "sigma_asymmetry": s_a, "g2": g2, "lobe": lobe,
+                    "hg_weight": f, "sigma_weight": math.sqrt(max(float(C2[k, k]), 0.0))}
+    return best
 
 
 def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, reference: SkyModel | None = None,
@@ -657,8 +750,10 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
         sandwich_form: ``jackknife`` or ``cr1`` (:func:`sandwich_covariance`).
         term: :func:`numerical_term` of this problem, x and lap computed before (``reference``, ``numerical``,
             ``refits`` and ``options`` are then not used).
-        expand: add the phase term (:func:`phase_expansion`, where it applies): the shift to the two-term
-            Henyey-Greenstein refit, as an error like the numerical shift (cov += e e^T).
+        expand: add the phase term (:func:`phase_expansion`, where it applies): the total at least the two-term
+            Henyey-Greenstein refit's spread (:func:`expansion_spread`), plus the shift to that refit as an error
+            like the numerical shift (cov += e e^T); ``budget`` then has ``sigma_phase`` (the shift's part) and
+            ``sigma_phase_spread`` (what the spread added).
         expansion: :func:`phase_expansion`'s result computed before (implies ``expand``).
 
     Returns:
@@ -729,7 +824,13 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
     if expansion is None and expand:
         expansion = phase_expansion(problem, x, term, reference=reference, options=options)
     e = torch.zeros(P, dtype=torch.float64) if expansion is None else expansion["e"].to(torch.float64)
-    cov_total = cov_noise + share + torch.outer(dx, dx) + torch.outer(tail, tail) + torch.outer(e, e)
+    cov_total = cov_noise + share + torch.outer(dx, dx) + torch.outer(tail, tail)
+    spread = None
+    if expansion is not None and expansion.get("covariance") is not None and pd:
+        # at least what the two-term refit allows, along every direction (loewner_upper), then its shift
+        spread = psd_part(loewner_upper(cov_total, expansion["covariance"].to(torch.float64)) - cov_total)
+        cov_total = cov_total + spread
+    cov_total = cov_total + torch.outer(e, e)
     out = {**lap, **covariance_summary(problem, x, cov_total, pd)}
     out["positive_definite"] = pd
     out["sigma_mode"] = "total"
@@ -749,7 +850,9 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
     budget["numerical_shift"] = {n: float(b - a) for n, a, b in zip(names, v0, v1)}
     if expansion is not None:
         budget["sigma_phase"] = {n: float(s_) for n, s_ in zip(names, J.abs() * e.abs())}
-        budget["phase_expansion"] = {k: expansion[k] for k in ("values", "loss", "converged", "seconds")}
+        budget["phase_expansion"] = {k: expansion[k] for k in ("values", "loss", "converged", "seconds", "spread") if k in expansion}
+        if spread is not None:
+            budget["sigma_phase_spread"] = {n: float(s_) for n, s_ in zip(names, J.abs() * torch.sqrt(torch.diagonal(spread).clamp_min(0.0)))}
     derived = {}
     for name, fn in derived_functions(problem).items():
         xr = x.to(torch.float64).clone().requires_grad_(True)
@@ -759,6 +862,7 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
             shifted = float(fn(x.to(torch.float64) + dx))
         derived[name] = {"sigma_noise": lap["derived"][name]["sigma"], "sigma_numerical": abs(float(g @ dx)),
                          **({"sigma_phase": abs(float(g @ e))} if expansion is not None else {}),
+                         **({"sigma_phase_spread": math.sqrt(max(float(g @ spread @ g), 0.0))} if spread is not None else {}),
                          "sigma_discrepancy": math.sqrt(max(float(g @ share @ g), 0.0)),
                          "numerical_shift": shifted - float(val.detach())}
         for model in ("floor", "sandwich"):
