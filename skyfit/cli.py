@@ -545,8 +545,8 @@ def _add_fit_options(p, D) -> None:
                    help=f"--sigma total's discrepancy term: a white relative error floor, a cluster-robust sandwich over "
                         f"sky regions, or the larger of the two (default {D.sigma_discrepancy}; docs/uncertainty.md)")
     p.add_argument("--sigma-phase", dest="sigma_phase", action="store_true", default=None,
-                   help="--sigma total: add the phase term, the shift of a two-term Henyey-Greenstein refit (one-term HG "
-                        "fits with g free; one more fit; docs/uncertainty.md, \"The phase term\")")
+                   help="--sigma total: add the phase term, the spread and shift of a two-term Henyey-Greenstein refit "
+                        "(one-term HG fits with g free; one more fit; docs/uncertainty.md, \"The phase term\")")
     p.add_argument("--location", help="LAT,LON[,ELEV] [deg, deg, m]: a photo's place (required), Kider data's site "
                    "(default: the Kider site)")
     p.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
