@@ -116,6 +116,39 @@ def test_circle_robust_to_skyline_and_bright_dome_rim():
     assert 0.5 < c.inlier_fraction < 0.8  # the black skyline hides a third of the rim
 
 
+def _low_skyline(level: float = 0.03):
+    """make_sky's camera with a low lit skyline (trees, roofs: ``level`` of the sky's brightness there) over azimuths
+    200-320°, its top 2-5° above the horizon (2-6 px inside the rim), smooth along it: the image."""
+    cam, rgb, _, valid, _, _ = make_sky()
+    v, _, _, zen = sky_angles(cam, 50.0, 140.0)
+    az = np.degrees(np.arctan2(v[..., 0].numpy(), v[..., 1].numpy())) % 360
+    top = 3.5 + 1.5 * np.sin(np.radians(az) * 2)
+    low = valid & (az > 200) & (az < 320) & (90 - zen < top)
+    return np.where(low[..., None], level * rgb, rgb)
+
+
+def test_circle_not_pulled_in_by_a_low_lit_skyline(monkeypatch):
+    """Crossings with lit ground 2-5 px beyond them are obstacle tops, not the rim: dropped, the circle is that of the
+    clean rim (within 0.5 px); without the check (OBSTACLE_LEVEL infinite) the third of the rim they cover pulls the
+    circle in and aside by over 2 px. A soft rim (the whole image blurred, sigma 2.5 px: every crossing has some
+    light beyond it) keeps all its crossings and is found within 1 px. (Obstacles under 2 px deep are not told from
+    the rim: their surround lies within the window looked at.)"""
+    import skimage.filters
+
+    from skyfit.camera import autocal
+
+    rgb = _low_skyline()
+    c = detect_circle(rgb @ LUMA)
+    assert math.hypot(c.cx - 137.3, c.cy - 112.6) < 0.5 and abs(c.radius - 100.0) < 0.5, c
+    monkeypatch.setattr(autocal, "OBSTACLE_LEVEL", math.inf)
+    naive = detect_circle(rgb @ LUMA)
+    assert math.hypot(naive.cx - 137.3, naive.cy - 112.6) > 2.0 and naive.radius < 99.0, naive
+    monkeypatch.undo()
+    _, clean, _, _, _, _ = make_sky()
+    soft = detect_circle(skimage.filters.gaussian(clean @ LUMA, sigma=2.5))
+    assert math.hypot(soft.cx - 137.3, soft.cy - 112.6) < 1.0 and abs(soft.radius - 100.0) < 1.0, soft
+
+
 def test_no_circle_in_a_full_frame_image():
     yy, xx = np.mgrid[:200, :240]
     rng = np.random.default_rng(1)

@@ -141,6 +141,16 @@ def _sample(image: np.ndarray, x: np.ndarray, y: np.ndarray, order: int = 1) -> 
     return out.reshape(x.shape)
 
 
+BEYOND_PX = (2.0, 5.0)
+"""Where beyond a crossing :func:`_radial_edges` looks for the unlit surround: past the rim's blur (a lens and
+demosaicing spread a step over 1-2 px) and short of the window's end. [px]"""
+
+OBSTACLE_LEVEL = 0.005
+"""Above the outside level by this fraction of the sky's (inside) level, what lies beyond a crossing is lit: an
+obstacle, not the surround outside the image circle (which no light reaches; JPEG codes 0-2 there). Daylit trees,
+roofs and hills are 1-10 % of the sky. [1]"""
+
+
 def _radial_edges(lin: np.ndarray, valid: np.ndarray, cx: float, cy: float, r: float, n_angles: int,
                   half_width: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Sub-pixel edge along radial profiles through an approximate circle.
@@ -150,9 +160,16 @@ def _radial_edges(lin: np.ndarray, valid: np.ndarray, cx: float, cy: float, r: f
     over the inner quarter of the window) and the outside level (outer quarter), the crossing nearest r,
     interpolated linearly. A hand-written search: no library offers a sub-pixel step along given rays.
 
+    A crossing is dropped where the profile 2-5 px beyond it (:data:`BEYOND_PX`) stays above the outside level by
+    more than :data:`OBSTACLE_LEVEL` of the inside level: that is no rim with the unlit surround behind it but the
+    top of a lit obstacle (a tree, a roof, a hill on the horizon; 1-7 % of the sky in the photos of docs/photos.md),
+    whose crossings lie inside the circle and, a third of the horizon of them, pull a fitted circle in and aside.
+    Where that would drop over half the rays the rim itself is soft (a lens whose field stop blurs over several
+    pixels) and none is dropped.
+
     Returns:
         (x, y, visible, median outside/inside ratio): x, y shape (n,) of the rays with a clear edge [px];
-        visible, number of rays whose window lies inside the image and ``valid``.
+        visible, number of rays whose window lies inside the image and ``valid`` and whose rim no lit obstacle hides.
     """
     phi = np.linspace(0, 2 * np.pi, n_angles, endpoint=False)
     radii = np.arange(r - half_width, r + half_width + 1e-9, 0.25)
@@ -168,7 +185,7 @@ def _radial_edges(lin: np.ndarray, valid: np.ndarray, cx: float, cy: float, r: f
     ratio = float(np.median(b[seen] / np.maximum(a[seen], 1e-300))) if seen.any() else 1.0
     typical = np.median(contrast[seen]) if seen.any() else 0.0
     clear = seen & (contrast > 0.3 * typical) & (contrast > 0) & (b < 0.5 * a)
-    xs, ys = [], []
+    xs, ys, lit = [], [], []
     j0 = len(radii) // 2
     for k in np.nonzero(clear)[0]:
         mid = 0.5 * (a[k] + b[k])
@@ -179,9 +196,14 @@ def _radial_edges(lin: np.ndarray, valid: np.ndarray, cx: float, cy: float, r: f
         j = down[np.argmin(np.abs(down - j0))]
         t = (p[j] - mid) / (p[j] - p[j + 1])
         rr = radii[j] + t * (radii[j + 1] - radii[j])
+        beyond = p[(radii >= rr + BEYOND_PX[0]) & (radii <= rr + BEYOND_PX[1])]
+        lit.append(bool(beyond.size) and float(np.median(beyond)) > b[k] + OBSTACLE_LEVEL * a[k])
         xs.append(cx + rr * np.cos(phi[k]))
         ys.append(cy + rr * np.sin(phi[k]))
-    return np.asarray(xs), np.asarray(ys), int(seen.sum()), ratio
+    xs, ys, lit = np.asarray(xs), np.asarray(ys), np.asarray(lit, dtype=bool)
+    if lit.sum() > 0.5 * max(int(seen.sum()), 1):  # most of the rim "lit": a soft rim, not obstacles; keep them all
+        lit[:] = False
+    return xs[~lit], ys[~lit], int(seen.sum()) - int(lit.sum()), ratio
 
 
 def _circle_params(model) -> tuple[float, float, float]:
@@ -266,7 +288,7 @@ def detect_circle(luminance: np.ndarray, valid: np.ndarray | None = None, *, see
         xs, ys, visible, ratio = _radial_edges(lin, valid, cx, cy, r, 720, max(6.0, 0.05 * r))
         if visible < 0.3 * 720:
             raise CalibrationError(f"no fisheye circle found: only {visible / 7.2:.0f} % of the candidate circle "
-                                   "lies in the image")
+                                   "lies in the image with no lit obstacle over it")
         if ratio > 0.2:
             raise CalibrationError(f"no fisheye circle found: outside the candidate circle is {ratio:.0%} as "
                                    "bright as inside (no dark surround)")
