@@ -235,6 +235,17 @@ def test_phase_term_covers_the_asymmetry_parameter_of_a_two_term_sky(phase):
         assert not sp["lobe"] and sp["sigma_asymmetry"] > 3 * floor["sigma"]["mie_g"]
 
 
+def test_phase_term_asked_where_it_does_not_apply_says_why():
+    """--sigma-phase on a fit whose g is held: no term, the budget says why, the sigma is the plain total's."""
+    clean, view, _ = _clean(TRUTH, 12)
+    free = [n for n in FREE if n != "mie_g"]
+    prob = FitProblem(Parameterisation(_base(), free), _model(), [_observation(clean, NOISE * clean, view)], make_loss("squared"))
+    x = fit(prob, TIGHT).x
+    out = uncertainty(prob, x, expand=True)
+    assert "g is not free" in out["budget"]["phase_note"] and "sigma_phase" not in out["budget"]
+    assert out["sigma"] == uncertainty(prob, x)["sigma"]
+
+
 def test_phase_spread_without_a_lobe_is_the_profile_in_the_weight():
     """Where the two-term refit ends at f = 1 (an HG sky) the phase spread holds g2 at each backward lobe tried and
     takes the Gauss-Newton sigma of f there (the model is linear in f). Brute force: refitting every other parameter

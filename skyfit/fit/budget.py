@@ -848,6 +848,13 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
             budget[f"sigma_discrepancy_{model}"] = {n: float(s) for n, s in zip(
                 names, torch.sqrt(torch.diagonal(shares[model]).clamp_min(0.0)) * J.abs())}
     budget["numerical_shift"] = {n: float(b - a) for n, a, b in zip(names, v0, v1)}
+    if expand and expansion is None:
+        p_ = problem.param
+        why = [f"its phase is {p_.base.mie_phase}"] if p_.base.mie_phase != "henyey_greenstein" else []
+        why += [] if "mie_g" in p_.free else ["g is not free"]
+        why += ["its two-term parameters are set"] if (set(p_.free) | p_._overridden) & set(TWO_TERM_HG) else []
+        budget["phase_note"] = ("no phase term (it widens a one-term Henyey-Greenstein phase with g free): "
+                                + ", ".join(why or ["it does not apply"]))
     if expansion is not None:
         budget["sigma_phase"] = {n: float(s_) for n, s_ in zip(names, J.abs() * e.abs())}
         budget["phase_expansion"] = {k: expansion[k] for k in ("values", "loss", "converged", "seconds", "spread") if k in expansion}
