@@ -53,9 +53,9 @@ the unconstrained vector x at the optimum x*, so that the reported sigma is the 
    profile over the backward lobes the data cannot rule out) bounds the total from below (:func:`loewner_upper`),
    and the shift e of every parameter is treated as an error, cov += e e^T (docs/uncertainty.md, "The phase term").
 
-Total: cov_x = H^-1 + D + dx dx^T (+ S' + e e^T), D the chosen model's share, S' what the spread adds. ``sigma`` of the result is this total;
-``budget`` holds the parts (``sigma_noise``, ``sigma_numerical``, ``sigma_discrepancy`` of the chosen
-model, ``sigma_discrepancy_floor`` and ``sigma_discrepancy_sandwich`` of each where computed), the
+Total: cov_x = H^-1 + D + dx dx^T (+ S' + e e^T), D the chosen model's share, S' what the spread adds.
+``sigma`` of the result is this total; ``budget`` holds the parts (``sigma_noise``, ``sigma_numerical``,
+``sigma_discrepancy`` of the chosen model, ``sigma_discrepancy_floor`` and ``sigma_discrepancy_sandwich`` of each where computed), the
 floor, the clusters (``discrepancy``), chi^2/dof and the shift. docs/uncertainty.md, "Coverage under
 model error", measures each model on skies rendered by a richer model: ``floor`` stays the default,
 the sandwich having changed 3 of 280 interval outcomes there (the numerical term dominates).
@@ -689,7 +689,7 @@ def expansion_spread(problem: FitProblem, x: Tensor, wide: FitProblem, x_wide: T
         (the refit's, or the profile's g2 that gave the largest spread), ``hg_weight`` f where the covariance was
         taken and ``sigma_weight`` (f's sigma there) [1], ``lobe`` (whether the refit found one).
     """
-    p, wp = problem.param, wide.param
+    wp = wide.param
     names1 = display_names(problem)
     lobe = 1.0 - float(w["mie_hg_weight"]) >= PHASE_EDGE
     candidates = []
