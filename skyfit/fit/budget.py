@@ -586,6 +586,16 @@ def expansion_applies(problem: FitProblem) -> bool:
             and not (set(p.free) | p._overridden) & set(TWO_TERM_HG))
 
 
+def _refreed(p: Parameterisation, x: Tensor, free: list[str], **held) -> Parameterisation:
+    """``p`` with the free set ``free``, every value as at x (free ones moved inside their bounds, overridden ones
+    and the nuisances as set) and ``held`` set (starting points where free, fixed values where not)."""
+    vals = {n: p.values[n] for n in p._overridden}
+    vals.update({n: p.values[n] for n in NUISANCE})
+    vals.update({n: inside_bounds(n, v) for n, v in p.free_dict(x).items()})
+    vals.update(held)
+    return Parameterisation(p.base, free, p.n_observations, p.per_observation, vals)
+
+
 def phase_expansion(problem: FitProblem, x: Tensor, term: NumericalTerm, *, reference: SkyModel | None = None,
                     options: FitOptions | None = None) -> dict | None:
     """The shift of every parameter when the fit's one-term Henyey-Greenstein phase is widened to two terms.
@@ -609,11 +619,7 @@ def phase_expansion(problem: FitProblem, x: Tensor, term: NumericalTerm, *, refe
     t0 = time.perf_counter()
     p = problem.param
     xc = (x.detach().to(torch.float64) + term.dx).to(x.dtype)
-    vals = {n: p.values[n] for n in p._overridden}
-    vals.update({n: p.values[n] for n in NUISANCE})
-    vals.update({n: inside_bounds(n, v) for n, v in p.free_dict(xc).items()})
-    vals.update(mie_g2=MIE_G2_DEFAULT, mie_hg_weight=MIE_HG_WEIGHT_DEFAULT)
-    wide = Parameterisation(p.base, list(p.free) + list(TWO_TERM_HG), p.n_observations, p.per_observation, vals)
+    wide = _refreed(p, xc, list(p.free) + list(TWO_TERM_HG), mie_g2=MIE_G2_DEFAULT, mie_hg_weight=MIE_HG_WEIGHT_DEFAULT)
     ep = copy.copy(problem)
     ep.param = wide
     ep.frozen_tables = None
@@ -696,12 +702,9 @@ def expansion_spread(problem: FitProblem, x: Tensor, wide: FitProblem, x_wide: T
     if lobe:
         candidates.append((wide, x_wide.detach(), dict(w)))
     else:
-        for g2 in PHASE_G2_PROFILE:
-            vals = {n: wp.values[n] for n in wp._overridden}
-            vals.update({n: wp.values[n] for n in NUISANCE})
-            vals.update({n: inside_bounds(n, v) for n, v in w.items() if n in wp.free})
-            vals.update(mie_g2=g2, mie_hg_weight=1.0 - PHASE_WEIGHT_PROBE)  # no lobe: f at 1, where g2 costs nothing
-            held = Parameterisation(wp.base, [n for n in wp.free if n != "mie_g2"], wp.n_observations, wp.per_observation, vals)
+        for g2 in PHASE_G2_PROFILE:  # no lobe: f at 1, where g2 costs nothing
+            held = _refreed(wp, x_wide, [n for n in wp.free if n != "mie_g2"], mie_g2=g2,
+                            mie_hg_weight=1.0 - PHASE_WEIGHT_PROBE)
             q = copy.copy(wide)
             q.param = held
             x_held = held.initial_vector(x_wide.dtype, x.device)

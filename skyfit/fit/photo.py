@@ -867,9 +867,8 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         t_lens = _now()
         lens, why = lens_from_sun(problem, res.x, scene.camera.projection)
         if lens is not None:  # refit with the lens; kept only where the same data then fit better (the evidence)
-            start_l = {n: v for n, v in problem.param.physical_dict(res.x).items() if n in s.free}
+            start_l, last = _continuation(problem, res.x, s.free)
             start_l["lens_radial"] = lens
-            last = problem.bruneton[1:] if getattr(problem, "bruneton", None) is not None else None
             fit_l = run(scene, start=start_l, settings=dataclasses.replace(s, adam_steps=0, starts=1), tables=last)
             miss = sun_separation_deg(fit_l[2], fit_l[3].x)
             kept = fit_l[3].loss < res.loss and miss < LENS_SUN_MIN_DEG
@@ -891,11 +890,9 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         grown &= (elevation < OUTLIER_MAX_ELEVATION_DEG) | (to_sun > OUTLIER_SUN_DISTANCE_DEG)
         if grown.any():
             scene.masks["outliers"] = grown & ~scene.excluded
-            start2 = {n: v for n, v in problem.param.physical_dict(res.x).items() if n in s.free}
+            start2, last = _continuation(problem, res.x, s.free)
             if lens is not None:
                 start2["lens_radial"] = lens  # held at the sun's value (not free)
-            # the first pass's last tables are at start2: no build before the second pass's first fit
-            last = problem.bruneton[1:] if getattr(problem, "bruneton", None) is not None else None
             blocks, prep, problem, res = run(scene, start=start2, settings=dataclasses.replace(s, adam_steps=0, starts=1),
                                              refreshes=1, tables=last)
         timings["fit_pass2"] = _now() - t2
@@ -908,6 +905,13 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     model_rgb = predict_blocks(problem, res.x, blocks, scene, blocks.sky | blocks.candidate)
     return PhotoFit(result, problem, res.x, scene, blocks, blocks.usable, model_rgb,
                     camera_from_result(scene.camera, problem.param.physical_dict(res.x)))
+
+
+def _continuation(problem: FitProblem, x: torch.Tensor, free) -> tuple[dict, tuple | None]:
+    """A refit's start from a fit at x: the free values there, and the fit's last Bruneton tables (built at x: no
+    build before the refit's first fit), None without them."""
+    start = {n: v for n, v in problem.param.physical_dict(x).items() if n in free}
+    return start, problem.bruneton[1:] if getattr(problem, "bruneton", None) is not None else None
 
 
 def _start_at(problem: FitProblem, x: torch.Tensor) -> None:
