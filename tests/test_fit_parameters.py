@@ -49,7 +49,7 @@ def test_every_transform_round_trips_inside_its_range(earth):
 @pytest.mark.parametrize("name", list(PARAMETERS))
 def test_forward_is_the_closed_form_and_stays_inside_the_range(name):
     spec = PARAMETERS[name]
-    x = torch.tensor([-40.0, -3.0, 0.0, 0.7, 40.0], dtype=torch.float64)
+    x = torch.tensor([-25.0, -3.0, 0.0, 0.7, 25.0], dtype=torch.float64)  # within the clamp (SIGMOID_EDGE)
     v = spec.forward(x)
     if spec.transform == "log":
         expect = spec.ref * torch.exp(x)
@@ -218,3 +218,15 @@ def test_a_fitted_value_on_a_bound_rebuilds():
     assert 0.0 < inside_bounds("ground_albedo_scale", 0.0) < 1e-9
     with pytest.raises(FitError, match="open interval"):
         PARAMETERS["mie_g2"].inverse(0.0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_open_interval_parameters_never_reach_their_bounds(dtype):
+    """An unconstrained value far out (an optimiser's wild first step) still gives a value strictly inside an open
+    interval: mie_g at +-1 is refused by the atmosphere (the sigmoid is exactly 1 from x ~ 37 in float64, 17 in float32)."""
+    from skyfit.fit.parameters import PARAMETERS
+
+    for name in ("mie_g", "colour_saturation", "vignetting"):
+        spec = PARAMETERS[name]
+        v = spec.forward(torch.tensor([1e3, -1e3, 50.0, -50.0], dtype=dtype))
+        assert bool((v > spec.lo).all() and (v < spec.hi).all()), (name, v)

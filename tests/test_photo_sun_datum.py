@@ -165,6 +165,7 @@ def test_prior_strain_is_the_sum_of_squared_z_and_its_chi2_point():
     mean_v, sig_v = fp.VIGNETTING_PRIOR
     want = ((math.log(1.48) / fp.GAIN_PRIOR_LOG_SIGMA) ** 2 + (math.log(0.56) / fp.GAIN_PRIOR_LOG_SIGMA) ** 2
             + ((-0.49 - mean_v) / sig_v) ** 2)
-    assert strain == pytest.approx(want, rel=1e-12) and strain > fp.PRIOR_STRAIN_CHI2  # synthetic case 12's first fit
-    assert fp.PRIOR_STRAIN_CHI2 == pytest.approx(chi2.ppf(0.99, 3), abs=0.01)
+    limit = chi2.ppf(fp.PRIOR_STRAIN_LEVEL, len(priors))
+    assert strain == pytest.approx(want, rel=1e-12) and strain > limit  # synthetic case 12's first fit
+    assert limit == pytest.approx(11.34, abs=0.01)  # chi^2_3's 99 % point
     assert fp.PROBE_AOD[0] < fp.PROBE_AOD[1]

@@ -161,6 +161,12 @@ class SkyModel:
         return out
 
 
+def _luminance_weights(p: Tensor) -> Tensor:
+    """sRGB's luminance weights (the Y row of linear sRGB -> XYZ), shape (3,), on ``p``'s dtype and device."""
+    y = np.linalg.inv(xyz_to_srgb_matrix())[1]
+    return torch.as_tensor(y, dtype=p.dtype, device=p.device)
+
+
 def channel_matrix(model_wavelengths: Tensor, obs: Observation) -> Tensor:
     """Matrix M (W, C) with obs channels = model spectral radiance (N, W) @ M.
 
@@ -331,10 +337,17 @@ class FitProblem:
     def predict_unscaled(self, phys: dict) -> list[Tensor]:
         """Each observation's channels for its used samples, (N_i, C_i), exposure 1.
 
-        RGB image data go through the camera's response: channel gains (1 for green,
-        ``gain_red``, ``gain_blue``: a white balance) and the relative illumination
+        RGB image data go through the camera's response: its colour saturation (each channel c becomes
+        Y + ``colour_saturation`` (c - Y) about the sample's luminance Y, sRGB's weights), channel gains (1 for
+        green, ``gain_red``, ``gain_blue``: a white balance) and the relative illumination
         ``1 + vignetting r^2`` at each sample's normalised image radius r
         (:attr:`Observation.image_radius`); other data are left as rendered.
+
+        The saturation stands for what a camera does to colour that a white balance cannot: its sensitivities
+        are not the CIE observer's, and the 3x3 matrix to sRGB, fitted on reflectances, renders the smooth
+        spectra of a sky less or more saturated than colorimetry (a Foveon sensor through its rawtoaces matrix
+        renders a Rayleigh sky's red/green 1.7x the CIE value relative to white; docs/photos.md), as picture
+        styles do by choice. Without it an aerosol's whitening is the only way the model can desaturate.
         """
         if self.model.lagged and self.frozen_factor is None:  # spectra() alone is the live single scattering
             raise FitError("multiple: bruneton_lagged needs its multiple-scattering factor frozen first "
@@ -344,6 +357,10 @@ class FitProblem:
             p = s @ m
             if o.kind == "rgb":
                 nu = self.param.nuisance(phys, i)
+                sat = nu["colour_saturation"]
+                if sat.requires_grad or float(sat) != 1.0:
+                    y = (p @ _luminance_weights(p))[:, None]
+                    p = y + sat * (p - y)
                 one = torch.ones_like(nu["gain_red"])
                 p = p * torch.stack([nu["gain_red"], one, nu["gain_blue"]])
                 if o.image_radius is not None:

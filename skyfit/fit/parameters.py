@@ -44,6 +44,18 @@ class FitError(ValueError):
 TRANSFORMS = ("log", "interval", "loginterval", "linear")
 
 
+SIGMOID_EDGE = {torch.float64: 30.0, torch.float32: 15.0}
+"""The unconstrained value of an interval parameter is clamped to +-this (by dtype) before the sigmoid: in float64
+the sigmoid is exactly 1 from about 37 on (float32: 17), which put an open-interval parameter on its bound (a
+5-iteration photo fit's first steps took ``mie_g`` to 1.0 and the atmosphere refused it); at 30 (15) it stays 2e-13
+(6e-7) of the range inside. [1]"""
+
+
+def _inside(x: Tensor) -> Tensor:
+    edge = SIGMOID_EDGE.get(x.dtype, 15.0)
+    return torch.sigmoid(x.clamp(-edge, edge))
+
+
 @dataclasses.dataclass(frozen=True)
 class ParameterSpec:
     """One fit parameter.
@@ -79,9 +91,9 @@ class ParameterSpec:
             return self.ref * torch.exp(x)
         if self.transform == "interval":
             top = self.hi if hi is None else hi
-            return self.lo + (top - self.lo) * torch.sigmoid(x)
+            return self.lo + (top - self.lo) * _inside(x)
         if self.transform == "loginterval":
-            return self.lo * torch.exp(math.log(self.hi / self.lo) * torch.sigmoid(x))
+            return self.lo * torch.exp(math.log(self.hi / self.lo) * _inside(x))
         return self.ref * x
 
     def log_abs_dvdx(self, x: Tensor, hi: float | None = None) -> Tensor:
@@ -205,6 +217,9 @@ PARAMETERS: dict[str, ParameterSpec] = {
                       description="RGB data: the red channel's gain relative to green (a camera's white balance)"),
         ParameterSpec("gain_blue", "1", "loginterval", 1.0, 0.1, 10.0, (0.8, 1.25), nuisance=True, prior="loguniform",
                       description="RGB data: the blue channel's gain relative to green (a camera's white balance)"),
+        ParameterSpec("colour_saturation", "1", "loginterval", 1.0, 0.2, 5.0, (0.8, 1.25), nuisance=True, prior="loguniform",
+                      description="RGB data: the camera's colour saturation relative to CIE colorimetry, each channel "
+                                  "Y + s (c - Y) about the sample's luminance Y (1: a colorimetric camera)"),
         ParameterSpec("vignetting", "1", "interval", 1.0, -0.9, 0.5, (-0.2, 0.0), nuisance=True, prior="uniform",
                       description="image data: relative illumination 1 + v r^2 at normalised image radius r (r = 1 at 90 deg)"),
         ParameterSpec("lens_radial", "1", "interval", 1.0, -0.15, 0.15, (-0.03, 0.03), nuisance=True, prior="uniform",
@@ -219,7 +234,7 @@ NUISANCE: tuple[str, ...] = tuple(n for n, s in PARAMETERS.items() if s.nuisance
 ATMOSPHERE_PARAMETERS: tuple[str, ...] = tuple(n for n, s in PARAMETERS.items() if not s.nuisance)
 ORIENTATION: tuple[str, ...] = ("sun_azimuth_offset", "sun_zenith_offset", "camera_tilt_north", "camera_tilt_east")
 """The instrument's orientation: sun offsets and the tilt of its zenith axis (a camera yaw is -sun_azimuth_offset)."""
-CAMERA_RESPONSE: tuple[str, ...] = ("gain_red", "gain_blue", "vignetting")
+CAMERA_RESPONSE: tuple[str, ...] = ("gain_red", "gain_blue", "colour_saturation", "vignetting")
 """A camera's colour balance and relative illumination: act on RGB image data only (:class:`skyfit.fit.model.FitProblem`)."""
 DEFAULT_PER_OBSERVATION: tuple[str, ...] = ("exposure",) + ORIENTATION + ("gain_red", "gain_blue")
 """Nuisance parameters that take one value per observation unless the config says otherwise
@@ -260,7 +275,8 @@ MIE_MIXING_HEIGHT_DEFAULT: float = 200.0
 (h_mix -> 0 is the exponential)."""
 
 _NUISANCE_DEFAULTS = {"exposure": 1.0, "noise_scale": 1.0, **{n: 0.0 for n in ORIENTATION},
-                      "gain_red": 1.0, "gain_blue": 1.0, "vignetting": 0.0, "lens_radial": 0.0}
+                      "gain_red": 1.0, "gain_blue": 1.0, "colour_saturation": 1.0, "vignetting": 0.0,
+                      "lens_radial": 0.0}
 
 
 def as_number(value, name: str) -> float:

@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
+import scipy.stats
 import torch
 
 from ..atmosphere.constants import PRESSURE_SCALE_HEIGHT_M
@@ -52,6 +53,7 @@ from ..io.photo import LinearPhoto, read_photo
 from .data import Observation
 from .model import FitProblem, aerosol_log_depth, applied_lens, lens_directions, tilt_directions
 from .optimise import fit as optimise
+from .parameters import CAMERA_RESPONSE
 from .problem import fit_settings, make_model, prepare
 
 if TYPE_CHECKING:
@@ -68,15 +70,16 @@ to settle."""
 LAGGED_REFRESHES = 3
 """The same for ``multiple: bruneton_lagged`` in ``skyfit fit`` of other data (no :class:`PhotoProblem`: the factor
 held fixed between refreshes, which stop when it changes by < 1 %)."""
-PHOTO_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "gain_red", "gain_blue", "vignetting",
-              "sun_azimuth_offset", "camera_tilt_north", "camera_tilt_east")
+PHOTO_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "gain_red", "gain_blue", "colour_saturation",
+              "vignetting", "sun_azimuth_offset", "camera_tilt_north", "camera_tilt_east")
 """Free parameters of a photo fit: the aerosol and the camera's nuisances. Rayleigh's scale stays at the
 config's (a photo of unknown exposure and white balance hardly separates it from the aerosol: add it with
 ``free=``); the aerosol's scale height stays at the config's (a ground photo sees the column, not its shape).
 The lens's departure from the chosen projection (``lens_radial``) is not fitted to the sky, which trades it against
 the aerosol: :func:`lens_from_sun` measures it from a compact sun between the passes."""
 CALIBRATED_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "sun_azimuth_offset")
-"""Free parameters when the camera is given (``camera=``): its geometry, gains and vignetting are known."""
+"""Free parameters when the camera is given (``camera=``): its geometry, gains, colour saturation and vignetting are
+known (a file without ``colour_saturation`` holds it at 1, a colorimetric camera)."""
 PHOTO_TABLES = (64, 32, 16, 8, 16, 64, 16, 8)
 """Bruneton table sizes of a photo fit's multiple-scattering factor (transmittance mu, r, irradiance mu_s, r,
 scattering r, mu, mu_s, nu), built on :data:`MS_WAVELENGTH_NODES` wavelengths. What matters is the scattering
@@ -151,7 +154,8 @@ class PhotoScene:
 
 # -- camera files --------------------------------------------------------------------------------
 CAMERA_KEYS = ("projection", "size", "width", "height", "cx", "cy", "radius_px", "focal_px", "kb_coeffs", "up_azimuth_deg",
-               "tilt_deg", "max_zenith_deg", "vignetting", "gain_red", "gain_blue", "spectral_sensitivities")
+               "tilt_deg", "max_zenith_deg", "vignetting", "gain_red", "gain_blue", "colour_saturation",
+               "spectral_sensitivities")
 CAMERA_INFO_KEYS = ("convention", "rotation", "model", "tilt_zenith_deg", "tilt_azimuth_deg", "source", "photos",
                     "nominal_projection", "lens_radial")
 """Keys a camera file may carry for the reader's information (the camera is the CAMERA_KEYS'; ``nominal_projection``
@@ -485,6 +489,13 @@ about 1 with this sigma. A camera on a daylight preset or auto white balance und
 grey near grey (the three published cameras of the synthetic generator on daylight: gains 0.87-1.08); the gains
 otherwise trade against the aerosol's whitening of the sky, which a photo's colour measures. [1]"""
 
+SATURATION_PRIOR_LOG_SIGMA = 0.3
+"""Prior of the camera's colour saturation relative to colorimetry (``colour_saturation``): log-normal about 1 with
+this sigma (0.55-1.8 at 2 sigma). Measured on sky-like spectra (D65 times lambda^-a, a = -0.5 ... 4.5) through the
+published sensitivities and rawtoaces matrices of three cameras (docs/photos.md, "A camera is not a colorimeter"):
+Canon EOS 5D Mark II 1.00, Nikon D5100 0.77, Sigma SD Merrill (Foveon) 0.59; picture styles add +-30 % by
+choice. [1]"""
+
 
 LENS_RADIAL_PRIOR_SIGMA = 0.03
 """Prior of ``lens_radial`` k (:func:`skyfit.fit.model.lens_directions`) when a photo fit frees it (``free=``):
@@ -552,9 +563,9 @@ def lens_from_sun(problem: "PhotoProblem", x: torch.Tensor, projection: str) -> 
     return k, f"the sun {miss:+.2f} deg from the {projection} projection's angle"
 
 
-PRIOR_STRAIN_CHI2 = 11.34
-"""A photo fit whose camera nuisances (gains, vignetting) end with sum z^2 over their priors above this, the 99 %
-point of chi^2 with 3 degrees of freedom, is refitted from the other side of the aerosol's range (:data:`PROBE_AOD`)
+PRIOR_STRAIN_LEVEL = 0.99
+"""A photo fit whose camera nuisances (gains, saturation, vignetting) end with sum z^2 over their k priors above
+chi^2_k's quantile at this level (11.34 for 3, 13.28 for 4) is refitted from the other side of the aerosol's range (:data:`PROBE_AOD`)
 and the lower loss kept: the nuisances took up what the aerosol should, the sign of a second basin of the lagged fit
 (synthetic case 12, AOD 0.5: the first start ended at 0.065 with gains 1.48 / 0.56 and vignetting -0.49, sum z^2 27,
 loss 0.245; from AOD 0.4, 0.48 with gains 0.88 / 1.00, loss 0.132). A prior predictive check, not a prior. [1]"""
@@ -566,7 +577,8 @@ def camera_priors(free: Sequence[str]) -> dict:
     """The camera's priors for the free names among ``vignetting``, ``gain_red``, ``gain_blue``, ``lens_radial``:
     name -> (kind, mean, sigma), kind ``linear`` (on the value) or ``log`` (on its logarithm)."""
     table = {"vignetting": ("linear",) + VIGNETTING_PRIOR, "gain_red": ("log", 0.0, GAIN_PRIOR_LOG_SIGMA),
-             "gain_blue": ("log", 0.0, GAIN_PRIOR_LOG_SIGMA), "lens_radial": ("linear", 0.0, LENS_RADIAL_PRIOR_SIGMA)}
+             "gain_blue": ("log", 0.0, GAIN_PRIOR_LOG_SIGMA), "colour_saturation": ("log", 0.0, SATURATION_PRIOR_LOG_SIGMA),
+             "lens_radial": ("linear", 0.0, LENS_RADIAL_PRIOR_SIGMA)}
     return {n: table[n] for n in free if n in table}
 
 
@@ -745,7 +757,7 @@ def photo_settings(config: dict, overrides: dict | None, calibrated: bool):
 
 def _fixed_camera_values(meta: dict | None) -> dict:
     out = {}
-    for k in ("vignetting", "gain_red", "gain_blue"):
+    for k in CAMERA_RESPONSE:
         if meta and meta.get(k) is not None:
             out[k] = float(meta[k])
     return out
@@ -851,13 +863,14 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     if not calibrated and problem.priors and "mie_aod_550" in s.free:
         with torch.no_grad():
             strain = 2.0 * float(problem.prior_penalty(problem.param.to_physical(res.x)))
-        if strain > PRIOR_STRAIN_CHI2:  # the camera took up what the aerosol should: a second basin, from the other side
+        limit = float(scipy.stats.chi2.ppf(PRIOR_STRAIN_LEVEL, len(problem.priors)))
+        if strain > limit:  # the camera took up what the aerosol should: a second basin, from the other side
             aod1 = float(problem.param.physical_dict(res.x)["mie_aod_550"])
             probe = PROBE_AOD[1] if aod1 < math.sqrt(PROBE_AOD[0] * PROBE_AOD[1]) else PROBE_AOD[0]
             fit_p = run(scene, start={**(start or {}), "mie_aod_550": probe})
             better = fit_p[3].loss < res.loss
             scene.notes.append(f"the camera's gains and vignetting strained their priors (sum z^2 {strain:.1f} > "
-                               f"{PRIOR_STRAIN_CHI2:g}): refitted from AOD {probe:g}, loss {fit_p[3].loss:.5g} against "
+                               f"{limit:.4g}): refitted from AOD {probe:g}, loss {fit_p[3].loss:.5g} against "
                                f"{res.loss:.5g} from the first start ({'kept' if better else 'not kept'})")
             if better:
                 blocks, prep, problem, res = fit_p
@@ -1354,7 +1367,7 @@ def photo_result(scene: PhotoScene, blocks: BlockImage, prep, problem, res, conf
     censored_px = (scene.photo.censored_high | scene.photo.censored_low).any(-1) & inside & ~excluded
     cam_meta = cam.to_metadata()
     cam_meta.update(source="given" if not scene.candidates else "estimated from the image and the sun",
-                    vignetting=vals.get("vignetting"), gain_red=vals.get("gain_red"), gain_blue=vals.get("gain_blue"))
+                    **{k: vals.get(k) for k in CAMERA_RESPONSE})
     if "lens_radial" in problem.param.free or vals.get("lens_radial"):
         cam_meta.update(nominal_projection=scene.camera.projection, lens_radial=vals["lens_radial"])
     if scene.circle is not None:

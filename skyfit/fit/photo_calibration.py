@@ -31,10 +31,12 @@ from ..camera.autocal import CalibrationError
 from ..camera.fisheye import FisheyeCamera
 from ..io.atomic import write_text_atomic
 from ..io.photo import read_photo
+from .parameters import CAMERA_RESPONSE
 from .photo import CAMERA_INFO_KEYS, CAMERA_KEYS, PhotoFitError, fit_photo, lens_camera
 
 CAMERA_FILE_KEYS = ("projection", "size", "cx", "cy", "radius_px", "focal_px", "kb_coeffs", "nominal_projection", "lens_radial",
-                    "up_azimuth_deg", "tilt_deg", "max_zenith_deg", "vignetting", "gain_red", "gain_blue", "convention",
+                    "up_azimuth_deg", "tilt_deg", "max_zenith_deg", "vignetting", "gain_red", "gain_blue", "colour_saturation",
+                    "convention",
                     "source", "photos")
 """The keys :func:`calibrate_camera` writes, in this order (all accepted by :func:`skyfit.fit.photo.read_camera`)."""
 
@@ -85,6 +87,7 @@ def _photo_entry(path, time: str, pf) -> dict:
         "up_azimuth_deg": float(meta["up_azimuth_deg"]), "tilt_deg": [float(v) for v in meta["tilt_deg"]],
         "max_zenith_deg": float(meta["max_zenith_deg"]),
         "vignetting": num(rc.get("vignetting")), "gain_red": num(rc.get("gain_red")), "gain_blue": num(rc.get("gain_blue")),
+        "colour_saturation": num(rc.get("colour_saturation")),
         "projection_evidence": {e["projection"]: num(e["sun_radius_error_deg"]) for e in rc.get("projection_evidence", [])},
         "sun_separation_deg": num(res["sun"].get("separation_deg")), "rmse_rel": num(res["metrics"].get("rmse_rel")),
         "loss": num(res["metrics"].get("loss")), "shape": [int(v) for v in res["photo"]["shape"]],
@@ -134,8 +137,8 @@ def combine_cameras(entries: list[dict]) -> tuple[dict, dict]:
     cam["tilt_deg"] = [float(v) for v in np.median(tilt, 0)]
     spread["tilt_deg"] = {"east": _spread(tilt[:, 0], cam["tilt_deg"][0]), "north": _spread(tilt[:, 1], cam["tilt_deg"][1])}
     cam["max_zenith_deg"] = med(same, "max_zenith_deg")
-    for k in ("vignetting", "gain_red", "gain_blue"):
-        vals = [e[k] for e in same if e[k] is not None]
+    for k in CAMERA_RESPONSE:
+        vals = [e[k] for e in same if e.get(k) is not None]
         if vals:
             cam[k] = float(np.median(vals))
             spread[k] = _spread(vals, cam[k])
