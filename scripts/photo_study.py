@@ -66,7 +66,7 @@ def score(truth: dict, result: dict) -> dict:
         "horizon_fraction": truth["obstacles"]["horizon_fraction"], "camera": truth["sensor"]["name"],
         "vignetting_rim": truth["vignetting"]["rim_value"], "vignetting_fit": cam.get("vignetting"),
         "gains_true": [f / truth["frames"][0]["linear_over_cie_rgb"][1] for f in truth["frames"][0]["linear_over_cie_rgb"][::2]],
-        "gains_fit": [cam.get("gain_red"), cam.get("gain_blue")], "saturation_fit": cam.get("colour_saturation"),
+        "gains_fit": [cam.get("gain_red"), cam.get("gain_blue")], "saturation_fit": [cam.get("saturation_red"), cam.get("saturation_blue")],
         "ms": {k: result.get("convergence", {}).get(k) for k in ("ms_refreshes", "ms_table_builds", "ms_factor_change")},
         "notes": result["notes"],
     }

@@ -777,7 +777,7 @@ def cmd_calibrate_camera(args) -> int:
     cam = calibrate_camera(args.photos, times, args.location, cfg, linear=args.linear, device=_check_device(args.device))
     write_camera(cam, args.out)
     summary = {"out": str(args.out), **{k: cam[k] for k in ("projection", "size", "cx", "cy", "radius_px", "up_azimuth_deg",
-                                                            "tilt_deg", "vignetting", "gain_red", "gain_blue", "colour_saturation")
+                                                            "tilt_deg", "vignetting", "gain_red", "gain_blue", "saturation_red", "saturation_blue")
                                         if k in cam},
                "spread": cam["_spread"], "photos": len(cam["photos"])}
     if args.json:

@@ -226,7 +226,7 @@ def test_open_interval_parameters_never_reach_their_bounds(dtype):
     interval: mie_g at +-1 is refused by the atmosphere (the sigmoid is exactly 1 from x ~ 37 in float64, 17 in float32)."""
     from skyfit.fit.parameters import PARAMETERS
 
-    for name in ("mie_g", "colour_saturation", "vignetting"):
+    for name in ("mie_g", "saturation_red", "vignetting"):
         spec = PARAMETERS[name]
         v = spec.forward(torch.tensor([1e3, -1e3, 50.0, -50.0], dtype=dtype))
         assert bool((v > spec.lo).all() and (v < spec.hi).all()), (name, v)

@@ -337,17 +337,18 @@ class FitProblem:
     def predict_unscaled(self, phys: dict) -> list[Tensor]:
         """Each observation's channels for its used samples, (N_i, C_i), exposure 1.
 
-        RGB image data go through the camera's response: its colour saturation (each channel c becomes
-        Y + ``colour_saturation`` (c - Y) about the sample's luminance Y, sRGB's weights), channel gains (1 for
-        green, ``gain_red``, ``gain_blue``: a white balance) and the relative illumination
+        RGB image data go through the camera's response: its colour rendering (red becomes Y + ``saturation_red``
+        (R - Y) and blue Y + ``saturation_blue`` (B - Y) about the sample's luminance Y, sRGB's weights; green as
+        rendered), channel gains (1 for green, ``gain_red``, ``gain_blue``: a white balance) and the relative illumination
         ``1 + vignetting r^2`` at each sample's normalised image radius r
         (:attr:`Observation.image_radius`); other data are left as rendered.
 
-        The saturation stands for what a camera does to colour that a white balance cannot: its sensitivities
+        The saturations stand for what a camera does to colour that a white balance cannot: its sensitivities
         are not the CIE observer's, and the 3x3 matrix to sRGB, fitted on reflectances, renders the smooth
-        spectra of a sky less or more saturated than colorimetry (a Foveon sensor through its rawtoaces matrix
-        renders a Rayleigh sky's red/green 1.7x the CIE value relative to white; docs/photos.md), as picture
-        styles do by choice. Without it an aerosol's whitening is the only way the model can desaturate.
+        spectra of a sky less or more saturated than colorimetry, and not equally along red and blue (a Foveon
+        sensor through its rawtoaces matrix renders a Rayleigh sky's red/green 1.7x the CIE value relative to
+        white: red 0.35, blue 0.82; docs/photos.md), as picture styles do by choice. Without them an aerosol's
+        whitening is the only way the model can desaturate.
         """
         if self.model.lagged and self.frozen_factor is None:  # spectra() alone is the live single scattering
             raise FitError("multiple: bruneton_lagged needs its multiple-scattering factor frozen first "
@@ -357,10 +358,10 @@ class FitProblem:
             p = s @ m
             if o.kind == "rgb":
                 nu = self.param.nuisance(phys, i)
-                sat = nu["colour_saturation"]
-                if sat.requires_grad or float(sat) != 1.0:
+                s_r, s_b = nu["saturation_red"], nu["saturation_blue"]
+                if s_r.requires_grad or s_b.requires_grad or float(s_r) != 1.0 or float(s_b) != 1.0:
                     y = (p @ _luminance_weights(p))[:, None]
-                    p = y + sat * (p - y)
+                    p = y + torch.stack([s_r, torch.ones_like(s_r), s_b]) * (p - y)
                 one = torch.ones_like(nu["gain_red"])
                 p = p * torch.stack([nu["gain_red"], one, nu["gain_blue"]])
                 if o.image_radius is not None:

@@ -217,9 +217,12 @@ PARAMETERS: dict[str, ParameterSpec] = {
                       description="RGB data: the red channel's gain relative to green (a camera's white balance)"),
         ParameterSpec("gain_blue", "1", "loginterval", 1.0, 0.1, 10.0, (0.8, 1.25), nuisance=True, prior="loguniform",
                       description="RGB data: the blue channel's gain relative to green (a camera's white balance)"),
-        ParameterSpec("colour_saturation", "1", "loginterval", 1.0, 0.2, 5.0, (0.8, 1.25), nuisance=True, prior="loguniform",
-                      description="RGB data: the camera's colour saturation relative to CIE colorimetry, each channel "
-                                  "Y + s (c - Y) about the sample's luminance Y (1: a colorimetric camera)"),
+        ParameterSpec("saturation_red", "1", "loginterval", 1.0, 0.1, 5.0, (0.8, 1.25), nuisance=True, prior="loguniform",
+                      description="RGB data: the red channel's contrast against luminance relative to CIE colorimetry, "
+                                  "Y + s (R - Y) (1: a colorimetric camera)"),
+        ParameterSpec("saturation_blue", "1", "loginterval", 1.0, 0.1, 5.0, (0.8, 1.25), nuisance=True, prior="loguniform",
+                      description="RGB data: the blue channel's contrast against luminance relative to CIE colorimetry, "
+                                  "Y + s (B - Y) (1: a colorimetric camera)"),
         ParameterSpec("vignetting", "1", "interval", 1.0, -0.9, 0.5, (-0.2, 0.0), nuisance=True, prior="uniform",
                       description="image data: relative illumination 1 + v r^2 at normalised image radius r (r = 1 at 90 deg)"),
         ParameterSpec("lens_radial", "1", "interval", 1.0, -0.15, 0.15, (-0.03, 0.03), nuisance=True, prior="uniform",
@@ -234,7 +237,7 @@ NUISANCE: tuple[str, ...] = tuple(n for n, s in PARAMETERS.items() if s.nuisance
 ATMOSPHERE_PARAMETERS: tuple[str, ...] = tuple(n for n, s in PARAMETERS.items() if not s.nuisance)
 ORIENTATION: tuple[str, ...] = ("sun_azimuth_offset", "sun_zenith_offset", "camera_tilt_north", "camera_tilt_east")
 """The instrument's orientation: sun offsets and the tilt of its zenith axis (a camera yaw is -sun_azimuth_offset)."""
-CAMERA_RESPONSE: tuple[str, ...] = ("gain_red", "gain_blue", "colour_saturation", "vignetting")
+CAMERA_RESPONSE: tuple[str, ...] = ("gain_red", "gain_blue", "saturation_red", "saturation_blue", "vignetting")
 """A camera's colour balance and relative illumination: act on RGB image data only (:class:`skyfit.fit.model.FitProblem`)."""
 DEFAULT_PER_OBSERVATION: tuple[str, ...] = ("exposure",) + ORIENTATION + ("gain_red", "gain_blue")
 """Nuisance parameters that take one value per observation unless the config says otherwise
@@ -275,7 +278,7 @@ MIE_MIXING_HEIGHT_DEFAULT: float = 200.0
 (h_mix -> 0 is the exponential)."""
 
 _NUISANCE_DEFAULTS = {"exposure": 1.0, "noise_scale": 1.0, **{n: 0.0 for n in ORIENTATION},
-                      "gain_red": 1.0, "gain_blue": 1.0, "colour_saturation": 1.0, "vignetting": 0.0,
+                      "gain_red": 1.0, "gain_blue": 1.0, "saturation_red": 1.0, "saturation_blue": 1.0, "vignetting": 0.0,
                       "lens_radial": 0.0}
 
 

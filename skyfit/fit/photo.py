@@ -70,8 +70,8 @@ to settle."""
 LAGGED_REFRESHES = 3
 """The same for ``multiple: bruneton_lagged`` in ``skyfit fit`` of other data (no :class:`PhotoProblem`: the factor
 held fixed between refreshes, which stop when it changes by < 1 %)."""
-PHOTO_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "gain_red", "gain_blue", "colour_saturation",
-              "vignetting", "sun_azimuth_offset", "camera_tilt_north", "camera_tilt_east")
+PHOTO_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "gain_red", "gain_blue", "saturation_red",
+              "saturation_blue", "vignetting", "sun_azimuth_offset", "camera_tilt_north", "camera_tilt_east")
 """Free parameters of a photo fit: the aerosol and the camera's nuisances. Rayleigh's scale stays at the
 config's (a photo of unknown exposure and white balance hardly separates it from the aerosol: add it with
 ``free=``); the aerosol's scale height stays at the config's (a ground photo sees the column, not its shape).
@@ -79,7 +79,7 @@ The lens's departure from the chosen projection (``lens_radial``) is not fitted 
 the aerosol: :func:`lens_from_sun` measures it from a compact sun between the passes."""
 CALIBRATED_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "sun_azimuth_offset")
 """Free parameters when the camera is given (``camera=``): its geometry, gains, colour saturation and vignetting are
-known (a file without ``colour_saturation`` holds it at 1, a colorimetric camera)."""
+known (a file without ``saturation_red`` / ``saturation_blue`` holds them at 1, a colorimetric camera)."""
 PHOTO_TABLES = (64, 32, 16, 8, 16, 64, 16, 8)
 """Bruneton table sizes of a photo fit's multiple-scattering factor (transmittance mu, r, irradiance mu_s, r,
 scattering r, mu, mu_s, nu), built on :data:`MS_WAVELENGTH_NODES` wavelengths. What matters is the scattering
@@ -154,8 +154,8 @@ class PhotoScene:
 
 # -- camera files --------------------------------------------------------------------------------
 CAMERA_KEYS = ("projection", "size", "width", "height", "cx", "cy", "radius_px", "focal_px", "kb_coeffs", "up_azimuth_deg",
-               "tilt_deg", "max_zenith_deg", "vignetting", "gain_red", "gain_blue", "colour_saturation",
-               "spectral_sensitivities")
+               "tilt_deg", "max_zenith_deg", "vignetting", "gain_red", "gain_blue", "saturation_red",
+               "saturation_blue", "spectral_sensitivities")
 CAMERA_INFO_KEYS = ("convention", "rotation", "model", "tilt_zenith_deg", "tilt_azimuth_deg", "source", "photos",
                     "nominal_projection", "lens_radial")
 """Keys a camera file may carry for the reader's information (the camera is the CAMERA_KEYS'; ``nominal_projection``
@@ -489,12 +489,13 @@ about 1 with this sigma. A camera on a daylight preset or auto white balance und
 grey near grey (the three published cameras of the synthetic generator on daylight: gains 0.87-1.08); the gains
 otherwise trade against the aerosol's whitening of the sky, which a photo's colour measures. [1]"""
 
-SATURATION_PRIOR_LOG_SIGMA = 0.3
-"""Prior of the camera's colour saturation relative to colorimetry (``colour_saturation``): log-normal about 1 with
-this sigma (0.55-1.8 at 2 sigma). Measured on sky-like spectra (D65 times lambda^-a, a = -0.5 ... 4.5) through the
-published sensitivities and rawtoaces matrices of three cameras (docs/photos.md, "A camera is not a colorimeter"):
-Canon EOS 5D Mark II 1.00, Nikon D5100 0.77, Sigma SD Merrill (Foveon) 0.59; picture styles add +-30 % by
-choice. [1]"""
+SATURATION_PRIOR_LOG_SIGMA = 0.45
+"""Prior of the camera's red and blue contrast against luminance relative to colorimetry (``saturation_red``,
+``saturation_blue``): log-normal about 1 with this sigma (0.4-2.5 at 2 sigma), the RMS of ln s over the two channels
+of the three published cameras measured on sky-like spectra (D65 times lambda^-a, a = -0.5 ... 4.5) through their
+sensitivities, daylight white balance and rawtoaces matrices (docs/photos.md, "A camera is not a colorimeter";
+tests/test_photo_fit.py): red / blue 0.99 / 1.03 (Canon EOS 5D Mark II), 0.79 / 0.74 (Nikon D5100), 0.35 / 0.82
+(Sigma SD Merrill, a Foveon sensor). Picture styles move them further by choice. [1]"""
 
 
 LENS_RADIAL_PRIOR_SIGMA = 0.03
@@ -577,7 +578,8 @@ def camera_priors(free: Sequence[str]) -> dict:
     """The camera's priors for the free names among ``vignetting``, ``gain_red``, ``gain_blue``, ``lens_radial``:
     name -> (kind, mean, sigma), kind ``linear`` (on the value) or ``log`` (on its logarithm)."""
     table = {"vignetting": ("linear",) + VIGNETTING_PRIOR, "gain_red": ("log", 0.0, GAIN_PRIOR_LOG_SIGMA),
-             "gain_blue": ("log", 0.0, GAIN_PRIOR_LOG_SIGMA), "colour_saturation": ("log", 0.0, SATURATION_PRIOR_LOG_SIGMA),
+             "gain_blue": ("log", 0.0, GAIN_PRIOR_LOG_SIGMA), "saturation_red": ("log", 0.0, SATURATION_PRIOR_LOG_SIGMA),
+             "saturation_blue": ("log", 0.0, SATURATION_PRIOR_LOG_SIGMA),
              "lens_radial": ("linear", 0.0, LENS_RADIAL_PRIOR_SIGMA)}
     return {n: table[n] for n in free if n in table}
 

@@ -35,7 +35,7 @@ from .parameters import CAMERA_RESPONSE
 from .photo import CAMERA_INFO_KEYS, CAMERA_KEYS, PhotoFitError, fit_photo, lens_camera
 
 CAMERA_FILE_KEYS = ("projection", "size", "cx", "cy", "radius_px", "focal_px", "kb_coeffs", "nominal_projection", "lens_radial",
-                    "up_azimuth_deg", "tilt_deg", "max_zenith_deg", "vignetting", "gain_red", "gain_blue", "colour_saturation",
+                    "up_azimuth_deg", "tilt_deg", "max_zenith_deg", "vignetting", "gain_red", "gain_blue", "saturation_red", "saturation_blue",
                     "convention",
                     "source", "photos")
 """The keys :func:`calibrate_camera` writes, in this order (all accepted by :func:`skyfit.fit.photo.read_camera`)."""
@@ -87,7 +87,7 @@ def _photo_entry(path, time: str, pf) -> dict:
         "up_azimuth_deg": float(meta["up_azimuth_deg"]), "tilt_deg": [float(v) for v in meta["tilt_deg"]],
         "max_zenith_deg": float(meta["max_zenith_deg"]),
         "vignetting": num(rc.get("vignetting")), "gain_red": num(rc.get("gain_red")), "gain_blue": num(rc.get("gain_blue")),
-        "colour_saturation": num(rc.get("colour_saturation")),
+        "saturation_red": num(rc.get("saturation_red")), "saturation_blue": num(rc.get("saturation_blue")),
         "projection_evidence": {e["projection"]: num(e["sun_radius_error_deg"]) for e in rc.get("projection_evidence", [])},
         "sun_separation_deg": num(res["sun"].get("separation_deg")), "rmse_rel": num(res["metrics"].get("rmse_rel")),
         "loss": num(res["metrics"].get("loss")), "shape": [int(v) for v in res["photo"]["shape"]],
