@@ -154,8 +154,9 @@ def dataclasses_replace(obj, **kw):
 
 
 def test_prior_strain_is_the_sum_of_squared_z_and_its_chi2_point():
-    """The second-basin check of a photo fit: 2 x the camera prior penalty is sum z^2 over gains (log-normal) and
-    vignetting (normal), and its threshold is chi^2's 99 % point with 3 degrees of freedom."""
+    """The second-basin check of a photo fit: 2 x the camera prior penalty is sum z^2 over gains and saturations
+    (log-normal) and vignetting (normal), and its threshold is chi^2's 95 % point with as many degrees of freedom as
+    priors (11.07 for a photo fit's five)."""
     from scipy.stats import chi2
 
     priors = fp.camera_priors(["gain_red", "gain_blue", "vignetting", "mie_g"])
@@ -167,5 +168,11 @@ def test_prior_strain_is_the_sum_of_squared_z_and_its_chi2_point():
             + ((-0.49 - mean_v) / sig_v) ** 2)
     limit = chi2.ppf(fp.PRIOR_STRAIN_LEVEL, len(priors))
     assert strain == pytest.approx(want, rel=1e-12) and strain > limit  # synthetic case 12's first fit
-    assert limit == pytest.approx(11.34, abs=0.01)  # chi^2_3's 99 % point
+    five = fp.camera_priors(fp.PHOTO_FREE)
+    assert set(five) == {"gain_red", "gain_blue", "saturation_red", "saturation_blue", "vignetting"}
+    assert chi2.ppf(fp.PRIOR_STRAIN_LEVEL, len(five)) == pytest.approx(11.07, abs=0.01)
+    phys.update(saturation_red=_t(0.35), saturation_blue=_t(0.82))  # a Foveon's colour rendering adds its share
+    more = 2.0 * float(fp.PhotoProblem.prior_penalty(types.SimpleNamespace(priors=five), phys))
+    assert more - strain == pytest.approx((math.log(0.35) ** 2 + math.log(0.82) ** 2) / fp.SATURATION_PRIOR_LOG_SIGMA**2,
+                                          rel=1e-12)
     assert fp.PROBE_AOD[0] < fp.PROBE_AOD[1]
