@@ -567,7 +567,7 @@ def _add_photo_options(p) -> None:
     p.add_argument("--time", help="photo: when it was taken, ISO 8601 with its UTC offset or a zone name "
                    "(2024-06-01T14:05:00+02:00)")
     p.add_argument("--camera", help="photo: CAMERA.yaml (projection, cx, cy, radius_px or focal_px, up_azimuth_deg, tilt_deg, "
-                   "vignetting, gains, spectral_sensitivities CSV); default: estimated from the image and the sun")
+                   "vignetting, gains, saturation_red/blue, spectral_sensitivities CSV); default: estimated from the image and the sun")
     p.add_argument("--mask", help="photo: an image of the photo's size, non-zero = ignore (added to the automatic masks)")
     p.add_argument("--exposures", help="bracket folder: exposure times of the frames in file-name order, comma list [s] "
                    "(default: from EXIF, else estimated from the frames' overlap)")

@@ -78,7 +78,7 @@ config's (a photo of unknown exposure and white balance hardly separates it from
 The lens's departure from the chosen projection (``lens_radial``) is not fitted to the sky, which trades it against
 the aerosol: :func:`lens_from_sun` measures it from a compact sun between the passes."""
 CALIBRATED_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "sun_azimuth_offset")
-"""Free parameters when the camera is given (``camera=``): its geometry, gains, colour saturation and vignetting are
+"""Free parameters when the camera is given (``camera=``): its geometry, gains, saturations and vignetting are
 known (a file without ``saturation_red`` / ``saturation_blue`` holds them at 1, a colorimetric camera)."""
 PHOTO_TABLES = (64, 32, 16, 8, 16, 64, 16, 8)
 """Bruneton table sizes of a photo fit's multiple-scattering factor (transmittance mu, r, irradiance mu_s, r,
@@ -167,7 +167,7 @@ def read_camera(path: str | Path) -> dict:
 
     Keys: ``projection``, ``cx``, ``cy``, ``radius_px`` (classical) or ``focal_px`` + ``kb_coeffs``
     (kannala_brandt), optional ``up_azimuth_deg``, ``tilt_deg`` [deg], ``max_zenith_deg``, ``vignetting``
-    (v of 1 + v r^2), ``gain_red``/``gain_blue``, and ``spectral_sensitivities`` (a CSV of wavelength [nm],
+    (v of 1 + v r^2), ``gain_red``/``gain_blue``, ``saturation_red``/``saturation_blue``, and ``spectral_sensitivities`` (a CSV of wavelength [nm],
     R, G, B, relative to this file). ``size`` may be left out: the photo's is used.
     """
     import yaml
