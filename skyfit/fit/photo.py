@@ -875,7 +875,7 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
             probe = PROBE_AOD[1] if aod1 < math.sqrt(PROBE_AOD[0] * PROBE_AOD[1]) else PROBE_AOD[0]
             fit_p = run(scene, start={**(start or {}), "mie_aod_550": probe})
             better = fit_p[3].loss < res.loss
-            scene.notes.append(f"the camera's gains and vignetting strained their priors (sum z^2 {strain:.1f} > "
+            scene.notes.append(f"the camera's nuisances (gains, saturations, vignetting) strained their priors (sum z^2 {strain:.1f} > "
                                f"{limit:.4g}): refitted from AOD {probe:g}, loss {fit_p[3].loss:.5g} against "
                                f"{res.loss:.5g} from the first start ({'kept' if better else 'not kept'})")
             if better:
