@@ -127,9 +127,11 @@ def test_lm_respects_tables_frozen_by_the_caller(base, monkeypatch):
     assert res.convergence["iterations"] >= 1 and calls == []
 
 
-def test_lm_rejects_a_trial_step_that_rounds_onto_a_bound(base):
-    """A sigmoid rounded onto a bound (mie_g2 = -1 exactly, which the atmosphere refuses) rejects LM's trial step
-    instead of ending the fit; at the fit's own start it is still an error."""
+def test_lm_rejects_a_trial_step_that_rounds_onto_a_bound(base, monkeypatch):
+    """The clamp before the sigmoid (SIGMOID_EDGE) keeps mie_g2 inside (-1, 1) however far a step goes; without it a
+    sigmoid rounded onto a bound (mie_g2 = -1 exactly, which the atmosphere refuses) rejects LM's trial step instead
+    of ending the fit, and at the fit's own start it is still an error."""
+    import skyfit.fit.parameters as parameters
     from skyfit.fit.optimise import _evaluate
 
     obs = _observation(base)
@@ -139,7 +141,11 @@ def test_lm_rejects_a_trial_step_that_rounds_onto_a_bound(base):
     x = param.initial_vector().clone()
     r, tables = _evaluate(problem, x, trial=True)
     assert r is not None and bool(torch.isfinite(r).all())
-    x[param.names.index("mie_g2")] = -60.0  # sigmoid 9e-27: -1 + 9e-27 rounds to -1.0
+    x[param.names.index("mie_g2")] = -60.0  # sigmoid 9e-27: -1 + 9e-27 would round to -1.0
+    assert -1.0 < float(param.to_physical(x)["mie_g2"]) < -1.0 + 1e-12  # clamped at -30 first
+    r, _ = _evaluate(problem, x, trial=True)
+    assert r is not None and bool(torch.isfinite(r).all())
+    monkeypatch.setitem(parameters.SIGMOID_EDGE, torch.float64, 1e3)  # the clamp off: the old rounding
     assert float(param.to_physical(x)["mie_g2"]) == -1.0
     assert _evaluate(problem, x, trial=True) == (None, None)
     with pytest.raises(FitError, match="invalid atmosphere"):
