@@ -241,7 +241,7 @@ CAMERA_RESPONSE: tuple[str, ...] = ("gain_red", "gain_blue", "saturation_red", "
 """A camera's colour balance and relative illumination: act on RGB image data only (:class:`skyfit.fit.model.FitProblem`)."""
 DEFAULT_PER_OBSERVATION: tuple[str, ...] = ("exposure",) + ORIENTATION + ("gain_red", "gain_blue")
 """Nuisance parameters that take one value per observation unless the config says otherwise
-(``vignetting``, a property of the lens, and ``noise_scale`` are shared)."""
+(``vignetting``, a property of the lens, the saturations, of the camera, and ``noise_scale`` are shared)."""
 
 TWO_TERM_HG: tuple[str, ...] = ("mie_g2", "mie_hg_weight")
 """Parameters of the two-term Henyey-Greenstein phase: free or set, they make the phase ``two_term_hg`` (g1 = mie_g)."""
