@@ -327,3 +327,17 @@ def test_published_cameras_render_sky_colours_as_the_prior_says():
         ratio[name] = np.sqrt(np.mean(gains_only.fun**2)) / np.sqrt(np.mean(fit.fun**2))
     assert math.sqrt(np.mean(np.square(logs))) == pytest.approx(SATURATION_PRIOR_LOG_SIGMA, abs=0.03)
     assert ratio["Sigma SDMerill (NPL)"] > 5
+
+
+def test_a_result_camera_fixes_every_response_value_it_has():
+    """evaluate and --camera hold what the camera dict gives of the response (gains, saturations, vignetting) and
+    nothing else; a file without the saturations leaves them to the parameters' default, 1 (colorimetric)."""
+    from skyfit.fit.parameters import _NUISANCE_DEFAULTS
+    from skyfit.fit.photo import _fixed_camera_values
+
+    cam = {"projection": "equisolid", "gain_red": 0.9, "gain_blue": 1.1, "saturation_red": 0.35, "saturation_blue": 0.82,
+           "vignetting": -0.2, "cx": 100.0}
+    assert _fixed_camera_values(cam) == {"gain_red": 0.9, "gain_blue": 1.1, "saturation_red": 0.35,
+                                         "saturation_blue": 0.82, "vignetting": -0.2}
+    assert _fixed_camera_values({"gain_red": 0.9}) == {"gain_red": 0.9}
+    assert _NUISANCE_DEFAULTS["saturation_red"] == 1.0 and _NUISANCE_DEFAULTS["saturation_blue"] == 1.0

@@ -1520,7 +1520,7 @@ def evaluate_photo(result: dict, photo, *, time: str, location, refit: Sequence[
                    progress: bool = False) -> dict:
     """Score another photo of the same camera with a photo fit's atmosphere and camera.
 
-    The atmosphere and the camera (heading, tilt, vignetting, gains) stay as fitted; only ``refit``
+    The atmosphere and the camera (heading, tilt, vignetting, gains, saturations) stay as fitted; only ``refit``
     (default the exposure, which differs from photo to photo) is fitted on the new photo.
     Returns rmse_rel (relative RMS over the used blocks), rmse, delta_e, the pixels, the sun's placement.
     """
