@@ -10,6 +10,7 @@ import contextlib
 import io
 import json
 import math
+import re
 import sys
 import time
 import warnings
@@ -535,7 +536,8 @@ def _add_fit_options(p, D) -> None:
     p.add_argument("--sun-mask", type=float, help=f"images: radius of the disk around the sun left out [deg] (default {D.sun_mask_deg:g})")
     p.add_argument("--fast-multiple", dest="ms_follow", action="store_false", default=None,
                    help="photos: hold the multiple-scattering factor fixed between refreshes instead of following it in "
-                        "the aerosol optical depth (about half the table builds; biased low on hazy skies; docs/photos.md)")
+                        "the aerosol optical depth (one build per refresh instead of two, but more refreshes: no faster on the "
+                        "synthetic photos since the saturations, and biased low on hazy skies; docs/photos.md)")
     p.add_argument("--max-samples", type=int, help="images: use every k-th pixel so that at most this many remain")
     p.add_argument("--sigma-relative", type=float, help=f"images: relative noise when the header has none (default {D.sigma_relative:g})")
     p.add_argument("--sigma", choices=SIGMA_MODES,
@@ -1263,11 +1265,27 @@ def _os_error(e: OSError) -> str:
     return f"{e.filename}: {reason}" if e.filename else reason
 
 
+_NEGATIVE_LIST = re.compile(r"^-\d[\d.eE+-]*(,[-+\d.eE]*)+$")
+
+
+def _join_negative_lists(argv: list[str]) -> list[str]:
+    """``--location -33.9,151.2`` as ``--location=-33.9,151.2``: argparse takes a value that starts with '-' and is
+    not a plain number for an option, so a southern or western place would be refused. Only a comma list of
+    numbers right after a long option is joined (written by hand: argparse has no switch for it)."""
+    out: list[str] = []
+    for tok in argv:
+        if out and out[-1].startswith("--") and "=" not in out[-1] and _NEGATIVE_LIST.match(tok):
+            out[-1] = f"{out[-1]}={tok}"
+        else:
+            out.append(tok)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     """The command line: one line and exit status 2 for any bad input, 130 on Ctrl-C (docs/reliability.md)."""
     try:
         parser = build_parser()
-        args = parser.parse_args(argv)
+        args = parser.parse_args(_join_negative_lists(list(sys.argv[1:] if argv is None else argv)))
         with _OneLineWarnings():
             _before_work(parser, args)
             return int(args.func(args) or 0)

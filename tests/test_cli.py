@@ -302,3 +302,18 @@ def test_render_per_layer_taylor_pairs(tmp_path, capsys):
     code, _, err = _run(["render", "earth", "--out", str(tmp_path / "u.exr"), *FAST, "--sun-zenith", "40",
                          "--integrator", "taylor:a=0.3/0.4/0.5"], capsys)
     assert code == 2 and "one per layer" in err
+
+
+def test_a_southern_or_western_location_is_taken_as_written():
+    """``--location -33.9,151.2`` (Sydney) and ``--location 40.7,-74.0,10`` parse as the place, not as an unknown option
+    (argparse alone refuses a value that starts with '-' and is not a plain number)."""
+    from skyfit.cli import _join_negative_lists, build_parser
+
+    parser = build_parser()
+    for loc in ("-33.9,151.2", "-33.9,-70.6,520", "40.7,-74.0,10"):
+        args = parser.parse_args(_join_negative_lists(["fit", "sky.jpg", "--time", "2024-06-01T10:00:00+10:00",
+                                                       "--location", loc, "--out", "r.json"]))
+        assert args.location == loc
+    # a plain negative number and an explicit '=' are left alone
+    assert _join_negative_lists(["--sun-azimuth", "-30", "--location=-1,2"]) == ["--sun-azimuth", "-30", "--location=-1,2"]
+    assert _join_negative_lists(["--location", "-1,2"]) == ["--location=-1,2"]
