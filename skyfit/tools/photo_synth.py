@@ -456,6 +456,56 @@ def colour_pipeline(name: str) -> dict:
     return _PIPELINES[name]
 
 
+def colour_rendering(name: str, slopes: np.ndarray = np.linspace(-0.5, 4.5, 11)) -> dict:
+    """How a published camera renders sky-like spectra against CIE colorimetry (docs/photos.md, "A camera is not a
+    colorimeter"; ``scripts/camera_colour.py``).
+
+    Spectra D65 x (lambda / 550 nm)^-a for each a in ``slopes`` (4: a clear zenith, 0: white haze) go through the
+    camera's sensitivities, its daylight white balance and rawtoaces matrix (:func:`colour_pipeline`) and through CIE
+    1931 -> linear sRGB. Three models of the difference are fitted by least squares on log chromaticity (ln R/G,
+    ln B/G): gains only; gains and one saturation s; gains and red / blue saturations (Y + s (c - Y) about sRGB's
+    luminance, as :meth:`skyfit.fit.model.FitProblem.predict_unscaled` applies them).
+
+    Returns:
+        ``slopes``; ``relative`` (len(slopes), 3): the camera's R/G, 1, B/G over CIE's, each relative to white (a = 0);
+        ``rms_gains``, ``rms_one``, ``rms_two``: the fits' rms in log chromaticity; ``s`` (one saturation);
+        ``s_red``, ``s_blue``. [1]
+    """
+    import colour  # heavy: imported when used
+    from scipy.optimize import least_squares
+
+    from ..render.colour import xyz_to_srgb_matrix
+
+    shape = colour.SpectralShape(400, 700, 5)
+    lam = np.arange(400.0, 701.0, 5.0)
+    d65 = colour.SDS_ILLUMINANTS["D65"].copy().align(shape).values
+    cmf = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(shape).values
+    to_srgb = np.asarray(xyz_to_srgb_matrix())
+    y_w = np.linalg.inv(to_srgb)[1]
+    slopes = np.asarray(slopes, float)
+    spectra = np.stack([d65 * (lam / 550.0) ** -a for a in slopes])
+    base = spectra @ (cmf @ to_srgb.T)
+    wl, sens = camera_sensitivities(name)
+    s_i = np.stack([np.interp(lam, wl, sens[:, c]) for c in range(3)], 1)
+    pipe = colour_pipeline(name)
+    cam = ((spectra @ s_i) * pipe["daylight_gains"] / pipe["daylight_gains"][1]) @ pipe["matrix"].T
+    target = np.log(cam / cam[:, 1:2])[:, [0, 2]]
+    y = (base @ y_w)[:, None]
+
+    def resid(q):
+        out = (y + np.array([q[2], 1.0, q[3]]) * (base - y)) * np.array([np.exp(q[0]), 1.0, np.exp(q[1])])
+        return (np.log(out / out[:, 1:2])[:, [0, 2]] - target).ravel()
+
+    rms = lambda r: float(np.sqrt(np.mean(r.fun**2)))  # noqa: E731
+    gains = least_squares(lambda q: resid(np.r_[q, 1.0, 1.0]), [0.0, 0.0])
+    one = least_squares(lambda q: resid(np.r_[q[:2], q[2], q[2]]), [0.0, 0.0, 1.0])
+    two = least_squares(resid, [0.0, 0.0, 1.0, 1.0])
+    white = int(np.argmin(np.abs(slopes)))
+    rel = (cam / cam[white]) / (base / base[white])
+    return {"slopes": slopes, "relative": rel / rel[:, 1:2], "rms_gains": rms(gains), "rms_one": rms(one),
+            "rms_two": rms(two), "s": float(one.x[2]), "s_red": float(two.x[2]), "s_blue": float(two.x[3])}
+
+
 @dataclasses.dataclass(frozen=True)
 class _Material:
     name: str
