@@ -84,6 +84,7 @@ def main(argv=None) -> int:
     ap.add_argument("--only", help="comma list of case indices to fit")
     ap.add_argument("--part", help="K/N: fit every N-th case from the K-th (0-based) and write OUT/study_partK.json only "
                                    "(several processes on a shared machine); --merge joins them")
+    ap.add_argument("--orders", type=int, help="scattering orders of the fits (default: the photo fit's, 4)")
     ap.add_argument("--merge", action="store_true", help="join OUT/study_part*.json into study.json and study.md")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -117,7 +118,8 @@ def main(argv=None) -> int:
         photo = f / truth["photo"].rstrip("/")
         t0, c0 = time.perf_counter(), time.process_time()
         try:
-            r = skyfit.fit_photo(photo, time=truth["time"], location=truth["location"])
+            extra = {"orders": args.orders} if args.orders else {}
+            r = skyfit.fit_photo(photo, time=truth["time"], location=truth["location"], **extra)
             row = score(truth, r.result)
             r.save_report(f / "report.png")
         except ValueError as e:

@@ -537,7 +537,8 @@ def _add_fit_options(p, D) -> None:
     p.add_argument("--fast-multiple", dest="ms_follow", action="store_false", default=None,
                    help="photos: hold the multiple-scattering factor fixed between refreshes instead of following it in "
                         "the aerosol optical depth (one build per refresh instead of two, but more refreshes: no faster on the "
-                        "synthetic photos since the saturations, and biased low on hazy skies; docs/photos.md)")
+                        "synthetic photos since the saturations, and biased low on hazy skies; for speed on clear "
+                        "skies --orders 3; docs/photos.md)")
     p.add_argument("--max-samples", type=int, help="images: use every k-th pixel so that at most this many remain")
     p.add_argument("--sigma-relative", type=float, help=f"images: relative noise when the header has none (default {D.sigma_relative:g})")
     p.add_argument("--sigma", choices=SIGMA_MODES,
