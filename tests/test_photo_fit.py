@@ -260,7 +260,7 @@ def test_channel_saturations_are_recovered_with_gains():
     first = skyfit.fit(obs, "earth", free=["exposure"], starts=1)  # the fit's own colorimetric sky, exposure 1
     with torch.no_grad():
         c = first.problem.predict(first.x)[0].numpy() / first.parameters["exposure"]
-    y = (c @ np.linalg.inv(skyfit.render.colour.xyz_to_srgb_matrix())[1])[:, None]
+    y = (c @ skyfit.render.colour.srgb_luminance_weights())[:, None]
     values = obs.values.clone()
     values[obs.mask] = torch.as_tensor(2.0 * (y + np.array([0.45, 1.0, 0.8]) * (c - y)) * np.array([1.2, 1.0, 0.85]))
     obs = dataclasses.replace(obs, values=values)

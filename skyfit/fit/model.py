@@ -20,7 +20,7 @@ from torch import Tensor
 from ..atmosphere import Atmosphere
 from ..camera.fisheye import zenith_azimuth_to_enu
 from ..camera.sensor import spectral_response_matrix
-from ..render.colour import xyz_to_srgb_matrix, spectral_to_xyz_matrix
+from ..render.colour import srgb_luminance_weights, xyz_to_srgb_matrix, spectral_to_xyz_matrix
 from ..transmittance import OpticalDepthIntegrator, prepare_columns
 from .data import DataError, Observation
 from .losses import Loss
@@ -159,12 +159,6 @@ class SkyModel:
             else:
                 out["table_sizes"] = list(self.table_sizes or self.REDUCED_TABLES)
         return out
-
-
-def _luminance_weights(p: Tensor) -> Tensor:
-    """sRGB's luminance weights (the Y row of linear sRGB -> XYZ), shape (3,), on ``p``'s dtype and device."""
-    y = np.linalg.inv(xyz_to_srgb_matrix())[1]
-    return torch.as_tensor(y, dtype=p.dtype, device=p.device)
 
 
 def channel_matrix(model_wavelengths: Tensor, obs: Observation) -> Tensor:
@@ -334,6 +328,14 @@ class FitProblem:
             out.append(rad * self.solar_scale[i])
         return out
 
+    @property
+    def _saturates(self) -> bool:
+        """Whether the camera's saturations act: free, or set away from 1 (decided from the parameterisation, so that
+        an evaluation reads no parameter value back from the device)."""
+        p = self.param
+        return any(n in p.free or bool(np.any(np.asarray(p.values[n], dtype=float) != 1.0))
+                   for n in ("saturation_red", "saturation_blue"))
+
     def predict_unscaled(self, phys: dict) -> list[Tensor]:
         """Each observation's channels for its used samples, (N_i, C_i), exposure 1.
 
@@ -358,10 +360,10 @@ class FitProblem:
             p = s @ m
             if o.kind == "rgb":
                 nu = self.param.nuisance(phys, i)
-                s_r, s_b = nu["saturation_red"], nu["saturation_blue"]
-                if s_r.requires_grad or s_b.requires_grad or float(s_r) != 1.0 or float(s_b) != 1.0:
-                    y = (p @ _luminance_weights(p))[:, None]
-                    p = y + torch.stack([s_r, torch.ones_like(s_r), s_b]) * (p - y)
+                if self._saturates:
+                    s_r = nu["saturation_red"]
+                    y = (p @ torch.as_tensor(srgb_luminance_weights(), dtype=p.dtype, device=p.device))[:, None]
+                    p = y + torch.stack([s_r, torch.ones_like(s_r), nu["saturation_blue"]]) * (p - y)
                 one = torch.ones_like(nu["gain_red"])
                 p = p * torch.stack([nu["gain_red"], one, nu["gain_blue"]])
                 if o.image_radius is not None:

@@ -73,6 +73,13 @@ def xyz_to_srgb_matrix() -> np.ndarray:
     return np.linalg.inv(colour.normalised_primary_matrix(cs.primaries, cs.whitepoint))
 
 
+@functools.lru_cache(maxsize=1)
+def srgb_luminance_weights() -> np.ndarray:
+    """Linear sRGB -> luminance Y: the Y row of :func:`xyz_to_srgb_matrix`'s inverse, shape (3,) (0.2126, 0.7152,
+    0.0722 to the standard's 4 digits)."""
+    return np.linalg.inv(xyz_to_srgb_matrix())[1]
+
+
 def xyz_to_linear_srgb(xyz: Tensor) -> Tensor:
     """Linear sRGB (D65) from XYZ, shape (..., 3)."""
     m = torch.as_tensor(xyz_to_srgb_matrix(), dtype=xyz.dtype, device=xyz.device)

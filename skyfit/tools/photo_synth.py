@@ -474,14 +474,14 @@ def colour_rendering(name: str, slopes: np.ndarray = np.linspace(-0.5, 4.5, 11))
     import colour  # heavy: imported when used
     from scipy.optimize import least_squares
 
-    from ..render.colour import xyz_to_srgb_matrix
+    from ..render.colour import srgb_luminance_weights, xyz_to_srgb_matrix
 
     shape = colour.SpectralShape(400, 700, 5)
     lam = np.arange(400.0, 701.0, 5.0)
     d65 = colour.SDS_ILLUMINANTS["D65"].copy().align(shape).values
     cmf = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(shape).values
     to_srgb = np.asarray(xyz_to_srgb_matrix())
-    y_w = np.linalg.inv(to_srgb)[1]
+    y_w = srgb_luminance_weights()
     slopes = np.asarray(slopes, float)
     spectra = np.stack([d65 * (lam / 550.0) ** -a for a in slopes])
     base = spectra @ (cmf @ to_srgb.T)
