@@ -154,3 +154,37 @@ def test_fast_multiple_holds_the_factor(sky):
     assert fit_settings({"ms_follow": False}).ms_follow is False
     with pytest.raises(FitError, match="ms_follow must be true or false"):
         fit_settings({"ms_follow": "no"}, where="fit")
+
+
+@pytest.fixture(scope="module")
+def sky4(tmp_path_factory):
+    """The sky of ``sky`` with 4 Bruneton orders (a truth a lagged fit can settle on)."""
+    d = tmp_path_factory.mktemp("lagged4")
+    assert main(["render", "earth_hazy", "--out", str(d / "sky.exr"), "--size", "14", "--sun-zenith", "50",
+                 "--wavelengths", "450,550,650", "--integrator", "chapman", "--view-samples", "8", "--rule", "gauss",
+                 "--spectral", "--dtype", "float64", "--orders", "4", "--table-sizes", "8,32,8,4"]) == 0
+    return d
+
+
+def test_a_settled_fit_is_not_rebuilt_and_ends_where_the_rebuild_would(sky4, monkeypatch):
+    """From AOD 0.12 a photo's lagged fit climbs to the sky's, and its last fit moves the AOD by < MS_AOD_SETTLE:
+    without the rebuild after it (MS_SETTLED_REBUILD off, the default) the fit ends on the same values with one
+    build fewer, and says the factor's change was not measured (NaN)."""
+    import math
+
+    from skyfit.fit import photo as fp
+    from skyfit.fit.problem import fit_settings
+
+    out = {}
+    for rebuild in (True, False):
+        monkeypatch.setattr(fp, "MS_SETTLED_REBUILD", rebuild)
+        problem = fp.PhotoProblem.of(_problem(sky4, ["mie_aod_550", "mie_angstrom_alpha", "exposure"]), {})
+        problem.param.set_value("mie_aod_550", 0.12)
+        res = fp.lagged_fit(problem, fit_settings({"starts": 1, "adam_steps": 0}).options(False),
+                            bruneton=problem.model.factor_model())
+        out[rebuild] = (res, problem.param.free_dict(res.x)["mie_aod_550"])
+    (with_rebuild, aod1), (without, aod0) = out[True], out[False]
+    assert aod0 > 0.2  # it did climb from 0.12
+    assert without.convergence["ms_table_builds"] == with_rebuild.convergence["ms_table_builds"] - 1
+    assert math.isnan(without.convergence["ms_factor_change"]) and math.isfinite(with_rebuild.convergence["ms_factor_change"])
+    torch.testing.assert_close(without.x, with_rebuild.x, rtol=0, atol=0)
