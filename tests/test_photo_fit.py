@@ -287,24 +287,28 @@ def test_channel_saturation_gradient():
 
 def test_published_cameras_render_sky_colours_as_the_prior_says():
     """The measurement behind SATURATION_PRIOR_LOG_SIGMA, redone (skyfit.tools.photo_synth.colour_rendering): spectra
-    D65 x (lambda/550)^-a, a = -0.5 ... 4.5, through each published camera's sensitivities, daylight white balance and
-    rawtoaces matrix, against CIE -> sRGB with red and blue saturations and gains fitted on log chromaticity (docs:
-    red / blue 0.98 / 1.04 for the Canon 5D Mark II, 0.79 / 0.74 for the Nikon D5100, 0.35 / 0.82 for the Sigma SD
-    Merrill). The prior's sigma is the RMS of ln s over the six (to 0.03); the Canon is near colorimetric; the Foveon
-    renders a clear sky's red/green over 1.5x colorimetry's, and the saturations fit it 5x better than gains alone."""
+    D65 x (lambda/550)^-a, a = -0.5 ... 4.5, through each published camera's sensitivities and daylight white balance,
+    then its rawtoaces matrix (``srgb``) or none (``camera_rgb``), against CIE -> sRGB with red and blue saturations and
+    gains fitted on log chromaticity (docs: with the matrix red / blue 0.98 / 1.04 for the Canon 5D Mark II,
+    0.79 / 0.74 for the Nikon D5100, 0.35 / 0.82 for the Sigma SD Merrill; without it 0.65 / 0.48, 0.67 / 0.42,
+    0.40 / 0.23). The prior's sigma is the RMS of ln s over the twelve (to 0.03); the Canon with its matrix is near
+    colorimetric; the Foveon renders a clear sky's red/green over 1.5x colorimetry's, and the saturations fit it 5x
+    better than gains alone; without a matrix every camera is less saturated than colorimetry in both channels."""
     pytest.importorskip("colour")
     from skyfit.fit.photo import SATURATION_PRIOR_LOG_SIGMA
     from skyfit.tools.photo_synth import colour_rendering
 
-    found = {name: colour_rendering(name) for name in ("Canon EOS 5D Mark II (rawtoaces)", "Nikon 5100 (NPL)",
-                                                      "Sigma SDMerill (NPL)")}
-    logs = [math.log(r[k]) for r in found.values() for k in ("s_red", "s_blue")]
+    names = ("Canon EOS 5D Mark II (rawtoaces)", "Nikon 5100 (NPL)", "Sigma SDMerill (NPL)")
+    found = {name: colour_rendering(name) for name in names}
+    raw = {name: colour_rendering(name, output="camera_rgb") for name in names}
+    logs = [math.log(r[k]) for d in (found, raw) for r in d.values() for k in ("s_red", "s_blue")]
     assert math.sqrt(np.mean(np.square(logs))) == pytest.approx(SATURATION_PRIOR_LOG_SIGMA, abs=0.03)
     canon, sigma = found["Canon EOS 5D Mark II (rawtoaces)"], found["Sigma SDMerill (NPL)"]
     assert abs(canon["s_red"] - 1) < 0.1 and abs(canon["s_blue"] - 1) < 0.1  # close to colorimetric
     assert sigma["s_red"] < 0.5 and sigma["rms_gains"] > 5 * sigma["rms_two"]  # the Foveon: red far less saturated
     a4 = int(np.argmin(abs(sigma["slopes"] - 4.0)))
     assert sigma["relative"][a4, 0] > 1.5  # a clear sky's red/green half again colorimetry's, relative to white
+    assert all(r["s_red"] < 0.8 and r["s_blue"] < 0.6 for r in raw.values())  # overlapping sensitivities, no matrix
 
 
 def test_a_result_camera_fixes_every_response_value_it_has():

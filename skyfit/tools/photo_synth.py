@@ -456,13 +456,14 @@ def colour_pipeline(name: str) -> dict:
     return _PIPELINES[name]
 
 
-def colour_rendering(name: str, slopes: np.ndarray = np.linspace(-0.5, 4.5, 11)) -> dict:
+def colour_rendering(name: str, slopes: np.ndarray = np.linspace(-0.5, 4.5, 11), output: str = "srgb") -> dict:
     """How a published camera renders sky-like spectra against CIE colorimetry (docs/photos.md, "A camera is not a
     colorimeter"; ``scripts/camera_colour.py``).
 
     Spectra D65 x (lambda / 550 nm)^-a for each a in ``slopes`` (4: a clear zenith, 0: white haze) go through the
-    camera's sensitivities, its daylight white balance and rawtoaces matrix (:func:`colour_pipeline`) and through CIE
-    1931 -> linear sRGB. Three models of the difference are fitted by least squares on log chromaticity (ln R/G,
+    camera's sensitivities, its daylight white balance and rawtoaces matrix (:func:`colour_pipeline`; ``output``
+    ``camera_rgb``: no matrix, the white-balanced camera RGB that a fifth of the generator's photos carry) and through
+    CIE 1931 -> linear sRGB. Three models of the difference are fitted by least squares on log chromaticity (ln R/G,
     ln B/G): gains only; gains and one saturation s; gains and red / blue saturations (Y + s (c - Y) about sRGB's
     luminance, as :meth:`skyfit.fit.model.FitProblem.predict_unscaled` applies them).
 
@@ -488,7 +489,11 @@ def colour_rendering(name: str, slopes: np.ndarray = np.linspace(-0.5, 4.5, 11))
     wl, sens = camera_sensitivities(name)
     s_i = np.stack([np.interp(lam, wl, sens[:, c]) for c in range(3)], 1)
     pipe = colour_pipeline(name)
-    cam = ((spectra @ s_i) * pipe["daylight_gains"] / pipe["daylight_gains"][1]) @ pipe["matrix"].T
+    if output not in ("srgb", "camera_rgb"):
+        raise ValueError(f"output must be srgb or camera_rgb, got {output!r}")
+    cam = (spectra @ s_i) * pipe["daylight_gains"] / pipe["daylight_gains"][1]
+    if output == "srgb":
+        cam = cam @ pipe["matrix"].T
     target = np.log(cam / cam[:, 1:2])[:, [0, 2]]
     y = (base @ y_w)[:, None]
 
