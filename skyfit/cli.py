@@ -1266,13 +1266,15 @@ def _os_error(e: OSError) -> str:
     return f"{e.filename}: {reason}" if e.filename else reason
 
 
-_NEGATIVE_LIST = re.compile(r"^-\d[\d.eE+-]*(,[-+\d.eE]*)+$")
+_NEGATIVE_LIST = re.compile(r"^-\d[^,\s]*(,[^,\s]*)+$")
 
 
 def _join_negative_lists(argv: list[str]) -> list[str]:
     """``--location -33.9,151.2`` as ``--location=-33.9,151.2``: argparse takes a value that starts with '-' and is
-    not a plain number for an option, so a southern or western place would be refused. Only a comma list of
-    numbers right after a long option is joined (written by hand: argparse has no switch for it)."""
+    not a plain number for an option, so a southern or western place would be refused. Only a comma list that starts
+    with a negative number, right after a long option, is joined (its items are checked by the option's own parser,
+    so ``-33.9,abc`` gets the location's message, not argparse's "expected one argument"; written by hand: argparse
+    has no switch for it)."""
     out: list[str] = []
     for tok in argv:
         if out and out[-1].startswith("--") and "=" not in out[-1] and _NEGATIVE_LIST.match(tok):

@@ -317,3 +317,5 @@ def test_a_southern_or_western_location_is_taken_as_written():
     # a plain negative number and an explicit '=' are left alone
     assert _join_negative_lists(["--sun-azimuth", "-30", "--location=-1,2"]) == ["--sun-azimuth", "-30", "--location=-1,2"]
     assert _join_negative_lists(["--location", "-1,2"]) == ["--location=-1,2"]
+    # a malformed southern place reaches the location's own check (not argparse's "expected one argument")
+    assert _join_negative_lists(["--location", "-33.9,abc"]) == ["--location=-33.9,abc"]
