@@ -291,7 +291,7 @@ def test_published_cameras_render_sky_colours_as_the_prior_says():
     then its rawtoaces matrix (``srgb``) or none (``camera_rgb``), against CIE -> sRGB with red and blue saturations and
     gains fitted on log chromaticity (docs: with the matrix red / blue 0.98 / 1.04 for the Canon 5D Mark II,
     0.79 / 0.74 for the Nikon D5100, 0.35 / 0.82 for the Sigma SD Merrill; without it 0.65 / 0.48, 0.67 / 0.42,
-    0.40 / 0.23). The prior's sigma is the RMS of ln s over the twelve (to 0.03); the Canon with its matrix is near
+    0.40 / 0.23). The prior's sigma is the RMS of ln s over the six with the matrix (to 0.03); the Canon with it is near
     colorimetric; the Foveon renders a clear sky's red/green over 1.5x colorimetry's, and the saturations fit it 5x
     better than gains alone; without a matrix every camera is less saturated than colorimetry in both channels."""
     pytest.importorskip("colour")
@@ -301,7 +301,7 @@ def test_published_cameras_render_sky_colours_as_the_prior_says():
     names = ("Canon EOS 5D Mark II (rawtoaces)", "Nikon 5100 (NPL)", "Sigma SDMerill (NPL)")
     found = {name: colour_rendering(name) for name in names}
     raw = {name: colour_rendering(name, output="camera_rgb") for name in names}
-    logs = [math.log(r[k]) for d in (found, raw) for r in d.values() for k in ("s_red", "s_blue")]
+    logs = [math.log(r[k]) for r in found.values() for k in ("s_red", "s_blue")]
     assert math.sqrt(np.mean(np.square(logs))) == pytest.approx(SATURATION_PRIOR_LOG_SIGMA, abs=0.03)
     canon, sigma = found["Canon EOS 5D Mark II (rawtoaces)"], found["Sigma SDMerill (NPL)"]
     assert abs(canon["s_red"] - 1) < 0.1 and abs(canon["s_blue"] - 1) < 0.1  # close to colorimetric
