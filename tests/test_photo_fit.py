@@ -290,7 +290,7 @@ def test_published_cameras_render_sky_colours_as_the_prior_says():
     D65 x (lambda/550)^-a, a = -0.5 ... 4.5, through each published camera's sensitivities and daylight white balance,
     then its rawtoaces matrix (``srgb``) or none (``camera_rgb``), against CIE -> sRGB with red and blue saturations and
     gains fitted on log chromaticity (docs: with the matrix red / blue 0.98 / 1.04 for the Canon 5D Mark II,
-    0.79 / 0.74 for the Nikon D5100, 0.35 / 0.82 for the Sigma SD Merrill; without it 0.65 / 0.48, 0.67 / 0.42,
+    0.79 / 0.74 for the Nikon D5100, 0.35 / 0.82 for the Sigma SD Merrill; without it 0.65 / 0.48, 0.67 / 0.41,
     0.40 / 0.23). The prior's sigma is the RMS of ln s over the six with the matrix (to 0.03); the Canon with it is near
     colorimetric; the Foveon renders a clear sky's red/green over 1.5x colorimetry's, and the saturations fit it 5x
     better than gains alone; without a matrix every camera is less saturated than colorimetry in both channels."""

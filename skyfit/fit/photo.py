@@ -496,7 +496,7 @@ of the three published cameras measured on sky-like spectra (D65 times lambda^-a
 sensitivities, daylight white balance and rawtoaces matrices (docs/photos.md, "A camera is not a colorimeter";
 tests/test_photo_fit.py): red / blue 0.99 / 1.03 (Canon EOS 5D Mark II), 0.79 / 0.74 (Nikon D5100), 0.35 / 0.82
 (Sigma SD Merrill, a Foveon sensor). Without a colour matrix (white-balanced camera RGB: a raw developed without it,
-a machine-vision all-sky camera) the same cameras give 0.65 / 0.48, 0.67 / 0.42, 0.40 / 0.23, 1-3 sigma out: the fit
+a machine-vision all-sky camera) the same cameras give 0.65 / 0.48, 0.67 / 0.41, 0.40 / 0.23, 1-3 sigma out: the fit
 reaches them (synthetic cases 9 and 14: 0.34 / 0.28 and 0.58 / 0.43), but they count toward the prior strain
 (:data:`PRIOR_STRAIN_LEVEL`). A sigma of 0.70, the RMS over all twelve, was measured over the 20 synthetic photos and
 not kept: with it case 12's wrong basin (AOD -86 %) no longer strained the priors (docs/photos.md, "Fewer builds").
@@ -964,9 +964,10 @@ def _start_at(problem: FitProblem, x: torch.Tensor) -> None:
 MS_WAVELENGTH_NODES = 6
 """Bruneton's tables of a photo fit are built on this many of the model's wavelengths (evenly spread, the ends
 included) and the factor is interpolated linearly in wavelength between them. Against every wavelength, at the
-fitted atmosphere of synthetic case 2 (``/tmp``-style script over ``fit_photo``'s problem, 2 threads): 6 nodes put
+fitted atmosphere of synthetic case 2 (the problem :func:`skyfit.fit_photo` ends with, 2 threads): 6 nodes put
 the factor within 0.58 % rms (3.6 % at most) for a build of 4.0 s instead of 7.8 s; 5 nodes 1.0 % (6.5 %) in 3.0 s;
-4 nodes 1.6 % (8.9 %) in 2.5 s; case 6 with 6 nodes: 0.9 % rms, 3.7 % at most (docs/photos.md, "Speed"). Six keep
+4 nodes 1.6 % (8.9 %) in 2.5 s (docs/photos.md, "Fewer builds"); case 6 with 6 nodes: 0.9 % rms, 3.7 % at most
+(docs/photos.md, "Speed"). Six keep
 the factor's error under a third of :data:`SIGMA_RELATIVE` in rms. None: every wavelength."""
 
 
