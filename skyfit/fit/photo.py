@@ -1081,8 +1081,8 @@ MS_SETTLED_REBUILD = False
 """Rebuild the tables after a fit that settled the AOD (:data:`MS_AOD_SETTLE`) following a refresh. Off: the factor
 that fit used, followed to first order in each wavelength's optical depth from tables built one refresh earlier,
 stands for the model at its result. The fitted values are the same either way (the rebuild came after the fit);
-only the metrics and the Laplace sigma see the rebuilt factor, which moved by 0.55 % (case 2) and 1.0 % (case 7) of
-the synthetic photos, and it cost one build of about 4 s in a 60 s fit (docs/photos.md, "Fewer builds"). The model
+only the metrics and the Laplace sigma see the rebuilt factor, which moved by 0.55 % on synthetic case 2, and it
+cost one build of about 4 s in a 60 s fit (docs/photos.md, "Fewer builds"). The model
 image of the report and the outlier map (:func:`predict_blocks`) take the last tables at the result without the
 followed slope: off by what the AOD's last move (< 2 %) changes the multiple part, about 1 % of the radiance against
 the outliers' 25 % (:data:`OUTLIER_THRESHOLD`). [bool]"""
