@@ -1071,8 +1071,12 @@ MS_AOD_TRUST = math.log(2.0)
 """Trust region of a fit with the factor followed to first order: the aerosol optical depth moves at most this far
 in ln tau from where the tables were built before the next refresh (:attr:`PhotoProblem.trust`); a first-order
 factor extrapolated from AOD 0.1 to 0.45 sent a hazy photo's fit astray. At convergence the bound is not active. [1]"""
-MS_SLOPE_REUSE = 0.1
-"""A refresh keeps the previous slope (:func:`aod_slope`) when ln tau moved less than this since it was built. [1]"""
+MS_SLOPE_REUSE = 0.2
+"""A refresh keeps the previous slope (:func:`aod_slope`) when no wavelength's ln tau moved more than this since it
+was built. The slope D of ln(F - 1) in ln tau changes by about 0.6 per unit of ln tau (docs/photos.md, "Fewer
+builds": a secant over 0.26 differed from the tangent 0.26 further by 8 %), so a slope kept over 0.2 is within about
+0.12 (10 %) of the one a build would give, and what it follows the factor over is the next fit's move, small near
+convergence. It was 0.1 (docs/photos.md, "Slope reuse"). [1]"""
 MS_AOD_SETTLE = 0.02
 """The refreshes of :func:`lagged_fit` with the factor followed in the optical depth also stop when a fit moves the
 aerosol optical depth by less than this (relative), inside its trust region: a fifth of the 15 % asked of a photo's
