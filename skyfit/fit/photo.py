@@ -1071,12 +1071,11 @@ MS_AOD_TRUST = math.log(2.0)
 """Trust region of a fit with the factor followed to first order: the aerosol optical depth moves at most this far
 in ln tau from where the tables were built before the next refresh (:attr:`PhotoProblem.trust`); a first-order
 factor extrapolated from AOD 0.1 to 0.45 sent a hazy photo's fit astray. At convergence the bound is not active. [1]"""
-MS_SLOPE_REUSE = 0.2
+MS_SLOPE_REUSE = 0.1
 """A refresh keeps the previous slope (:func:`aod_slope`) when no wavelength's ln tau moved more than this since it
-was built. The slope D of ln(F - 1) in ln tau changes by about 0.6 per unit of ln tau (docs/photos.md, "Fewer
-builds": a secant over 0.26 differed from the tangent 0.26 further by 8 %), so a slope kept over 0.2 is within about
-0.12 (10 %) of the one a build would give, and what it follows the factor over is the next fit's move, small near
-convergence. It was 0.1 (docs/photos.md, "Slope reuse"). [1]"""
+was built. At 0.2 (docs/photos.md, "Fewer builds") the 20 synthetic photos took 174 builds instead of 190, but four
+fits ended further from the truth (case 18 +8.4 -> +21.7 %, case 11 +6.5 -> +14.0 %, case 6 -7.4 -> -13.6 %, case 17
+-11.0 -> -14.4 %): AOD within 15 % on 18 instead of 19. [1]"""
 MS_AOD_SETTLE = 0.02
 """The refreshes of :func:`lagged_fit` with the factor followed in the optical depth also stop when a fit moves the
 aerosol optical depth by less than this (relative), inside its trust region: a fifth of the 15 % asked of a photo's
