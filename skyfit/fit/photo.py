@@ -967,8 +967,8 @@ included) and the factor is interpolated linearly in wavelength between them. Ag
 fitted atmosphere of synthetic case 2 (the problem :func:`skyfit.fit_photo` ends with, 2 threads): 6 nodes put
 the factor within 0.58 % rms (3.6 % at most) for a build of 4.0 s instead of 7.8 s; 5 nodes 1.0 % (6.5 %) in 3.0 s;
 4 nodes 1.6 % (8.9 %) in 2.5 s (docs/photos.md, "Fewer builds"); case 6 with 6 nodes: 0.9 % rms, 3.7 % at most
-(docs/photos.md, "Speed"). Six keep
-the factor's error under a third of :data:`SIGMA_RELATIVE` in rms. None: every wavelength."""
+(docs/photos.md, "Speed"). Six keep the factor's error under a third of :data:`SIGMA_RELATIVE` in rms. None: every
+wavelength."""
 
 
 MS_ANCHOR = "live"
