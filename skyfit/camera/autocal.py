@@ -323,8 +323,9 @@ def fill_small_holes(mask: np.ndarray, max_area: int) -> np.ndarray:
     return mask | small[lab]
 
 
-_LUMA = np.array([0.2126, 0.7152, 0.0722])
-"""Linear sRGB to relative luminance Y (IEC 61966-2-1). [1]"""
+SRGB_LUMA = np.array([0.2126, 0.7152, 0.0722])
+"""Linear sRGB to relative luminance Y, to the 4 digits of IEC 61966-2-1 (the image-side steps: circle, sun, masks;
+the fit's model uses the derived :func:`skyfit.render.colour.srgb_luminance_weights`). [1]"""
 
 
 EXTENDED_MIN_PX = 20
@@ -543,7 +544,7 @@ def detect_sun(darkest_rgb: np.ndarray, darkest_saturated: np.ndarray, inside: n
                     on_axis = (float(j0), float(i0), float(depth[i0, j0]))
                 x, y, rad = on_axis
                 return SunDetection(float(x), float(y), float(rad), True, int(best.area), extended=True)
-    lum = np.where(inside, rgb @ _LUMA, 0.0)
+    lum = np.where(inside, rgb @ SRGB_LUMA, 0.0)
     if not inside.any() or not np.isfinite(lum).all():
         return None
     sm = skimage.filters.gaussian(lum, sigma=1.0, mode="nearest")

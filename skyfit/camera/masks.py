@@ -11,13 +11,10 @@ import numpy as np
 import skimage  # lazy sub-packages: skimage.morphology etc. load (with scipy, ~0.7 s) at first use, not at `import skyfit`
 import torch
 
-from .autocal import CalibrationError, SunDetection, fill_small_holes
+from .autocal import SRGB_LUMA, CalibrationError, SunDetection, fill_small_holes
 from .fisheye import FisheyeCamera
 
 __all__ = ["SUN_MASK_MAX_DEG", "grow_outlier_mask", "obstacle_mask", "sun_mask"]
-
-_LUMA = np.array([0.2126, 0.7152, 0.0722])
-"""Linear sRGB to relative luminance Y (IEC 61966-2-1). [1]"""
 
 SUN_HALO_MARGIN_DEG = 3.0
 """How far beyond the saturated blob's angular radius the sun mask reaches: a lens's flare halo falls off
@@ -208,7 +205,7 @@ def obstacle_mask(linear_rgb: np.ndarray, inside: np.ndarray, camera: FisheyeCam
     elev = 90.0 - np.degrees(zen.numpy())
     az = az.numpy()
     inside = inside & valid.numpy() & np.isfinite(rgb).all(-1)
-    y = rgb @ _LUMA
+    y = rgb @ SRGB_LUMA
     scale = float(np.median(y[inside])) if inside.any() else 0.0
     if not scale > 0:
         raise CalibrationError("the image is black inside the circle: cannot tell obstacles from sky")

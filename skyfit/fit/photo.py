@@ -44,8 +44,8 @@ import scipy.stats
 import torch
 
 from ..atmosphere.constants import PRESSURE_SCALE_HEIGHT_M
-from ..camera.autocal import (CalibrationError, CameraGuess, Circle, SunDetection, cameras_from_sun, detect_circle,
-                              detect_sun, symmetry_axis)
+from ..camera.autocal import (SRGB_LUMA, CalibrationError, CameraGuess, Circle, SunDetection, cameras_from_sun,
+                              detect_circle, detect_sun, symmetry_axis)
 from ..camera.fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, theta_to_rho, zenith_azimuth_to_enu
 from ..camera.masks import SUN_MASK_MAX_DEG, grow_outlier_mask, obstacle_mask, sun_mask
 from ..camera.sun import parse_location, parse_time, sun_position
@@ -222,7 +222,7 @@ def read_sensitivities(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 # -- the scene ------------------------------------------------------------------------------------
 def _luminance(rgb: np.ndarray) -> np.ndarray:
-    return rgb @ np.array([0.2126, 0.7152, 0.0722])
+    return rgb @ SRGB_LUMA
 
 
 def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camera: FisheyeCamera | dict | str | Path | None = None,
@@ -1258,13 +1258,12 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
         trust = getattr(problem, "trust", None)  # a PhotoProblem's
         at_trust_bound = trust is not None and abs(_log_aod(problem, x) - trust[0]) > 0.99 * trust[1]
         settled = trust is not None and aod_moved < MS_AOD_SETTLE and not at_trust_bound
-        if settled and (k > 0 or tables is not None):
+        if settled and (k > 0 or tables is not None) and not MS_SETTLED_REBUILD:
             # the factor the fit followed to first order in the optical depth is the model at x to within what the
-            # AOD's last move changes it by: no rebuild (:data:`MS_SETTLED_REBUILD`). Not on a first fit from
-            # fresh tables, whose other values (g, alpha) moved without a refresh yet.
-            if not MS_SETTLED_REBUILD:
-                change = math.nan
-                break
+            # AOD's last move changes it by: no rebuild. Not on a first fit from fresh tables, whose other values
+            # (g, alpha) moved without a refresh yet.
+            change = math.nan
+            break
         used = problem.frozen_factor
         if used is not None and problem.frozen_slope is not None:  # the factor the fit ended on
             with torch.no_grad():

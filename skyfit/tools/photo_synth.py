@@ -472,6 +472,8 @@ def colour_rendering(name: str, slopes: np.ndarray = np.linspace(-0.5, 4.5, 11),
         ``rms_gains``, ``rms_one``, ``rms_two``: the fits' rms in log chromaticity; ``s`` (one saturation);
         ``s_red``, ``s_blue``. [1]
     """
+    if output not in ("srgb", "camera_rgb"):
+        raise ValueError(f"output must be srgb or camera_rgb, got {output!r}")
     import colour  # heavy: imported when used
     from scipy.optimize import least_squares
 
@@ -489,8 +491,6 @@ def colour_rendering(name: str, slopes: np.ndarray = np.linspace(-0.5, 4.5, 11),
     wl, sens = camera_sensitivities(name)
     s_i = np.stack([np.interp(lam, wl, sens[:, c]) for c in range(3)], 1)
     pipe = colour_pipeline(name)
-    if output not in ("srgb", "camera_rgb"):
-        raise ValueError(f"output must be srgb or camera_rgb, got {output!r}")
     cam = (spectra @ s_i) * pipe["daylight_gains"] / pipe["daylight_gains"][1]
     if output == "srgb":
         cam = cam @ pipe["matrix"].T
