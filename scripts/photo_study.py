@@ -44,6 +44,24 @@ def ray_errors(true_cam: dict, fit_cam: dict, step: int = 4, max_zenith_deg: flo
     return {"median": float(np.median(ang)), "p95": float(np.percentile(ang, 95)), "max": float(ang.max())}
 
 
+def sun_errors(truth: dict, sun: dict) -> dict:
+    """Angles from the true sun, through the true camera, of the fitted camera's sun (``model``), the reported
+    detection (``detected``: registered or centroid) and the detector's centroid (``centroid``). [deg]"""
+    from skyfit.camera import FisheyeCamera
+
+    cam = FisheyeCamera.from_metadata(truth["camera"])
+
+    def ray(px):
+        with torch.no_grad():
+            return cam.pixel_to_direction(torch.tensor(float(px[0]), dtype=torch.float64),
+                                          torch.tensor(float(px[1]), dtype=torch.float64)).numpy()
+
+    t = ray(truth["sun"]["model_px"])
+    ang = lambda px: None if px is None else math.degrees(math.atan2(float(np.linalg.norm(np.cross(ray(px), t))),  # noqa: E731
+                                                                     float(np.dot(ray(px), t))))
+    return {"model": ang(sun["model_px"]), "detected": ang(sun["detected_px"]), "centroid": ang(sun.get("centroid_px"))}
+
+
 def score(truth: dict, result: dict) -> dict:
     """Fit vs truth of one case."""
     tp = truth["atmosphere"]["parameters"]
@@ -62,6 +80,8 @@ def score(truth: dict, result: dict) -> dict:
         "centre_err_px": math.hypot(cam["cx"] - tc["cx"], cam["cy"] - tc["cy"]),
         "radius_err_px": cam["radius_px"] - tc["radius_px"],
         "sun_separation_deg": sun["separation_deg"], "sun_detected": sun["detected_px"] is not None,
+        "sun_detected_by": sun.get("detected_by"), "sun_centroid_separation_deg": sun.get("centroid_separation_deg"),
+        "sun_registration_iou": (sun.get("registration") or {}).get("iou"), "sun_err_deg": sun_errors(truth, sun),
         "rmse_rel": result["metrics"]["rmse_rel"], "seconds": result["seconds"], "split": result["seconds_split"],
         "horizon_fraction": truth["obstacles"]["horizon_fraction"], "camera": truth["sensor"]["name"],
         "vignetting_rim": truth["vignetting"]["rim_value"], "vignetting_fit": cam.get("vignetting"),
@@ -151,6 +171,12 @@ def write_study(rows: list, out: Path, argv) -> int:
         "heading_within_2deg": sum(abs(r["heading_err_deg"]) <= 2 for r in ok),
         "centre_within_3px": sum(r["centre_err_px"] <= 3 for r in ok),
         "sun_within_1deg": sum(r["sun_separation_deg"] is not None and r["sun_separation_deg"] <= 1 for r in ok),
+        "sun_centroid_within_1deg": sum(r.get("sun_centroid_separation_deg") is not None
+                                        and r["sun_centroid_separation_deg"] <= 1 for r in ok),
+        "sun_model_within_1deg_of_truth": sum((r.get("sun_err_deg") or {}).get("model") is not None
+                                              and r["sun_err_deg"]["model"] <= 1 for r in ok),
+        "sun_err_deg_median": {k: float(np.median([r["sun_err_deg"][k] for r in ok if (r.get("sun_err_deg") or {}).get(k) is not None]))
+                               for k in ("model", "detected", "centroid") if any((r.get("sun_err_deg") or {}).get(k) is not None for r in ok)},
         "sun_detected": sum(r["sun_detected"] for r in ok),
         "projection_right": sum(r["projection_fit"] == r["projection_true"] for r in ok),
         "rays_p95_within_0.5deg": sum(r.get("ray_err_deg", {}).get("p95", math.inf) <= 0.5 for r in ok),
@@ -162,21 +188,26 @@ def write_study(rows: list, out: Path, argv) -> int:
     }
     (out / "study.json").write_text(json.dumps({"summary": summary, "cases": rows}, indent=1, default=str))
     lines = ["| case | bracket | projection (true → fit) | sun zenith | AOD true | AOD fit ± σ | α true / fit | g true / fit "
-             "| heading err [°] | centre err [px] | rays p95 [°] | lens k (KB k1 true) | sun sep [°] | rel. rms | wall s | CPU s | load |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| heading err [°] | centre err [px] | rays p95 [°] | lens k (KB k1 true) | sun sep [°] (centroid's) "
+             "| sun from truth [°]: model / detected / centroid | rel. rms | wall s | CPU s | load |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['case']} | | | | | failed: {r['error']} | | | | | | | | | | | |")
+            lines.append(f"| {r['case']} | | | | | failed: {r['error']} | | | | | | | | | | | | |")
             continue
         sig = f" ± {r['aod_sigma']:.3f}" if r.get("aod_sigma") else ""
         sep = "—" if r["sun_separation_deg"] is None else f"{r['sun_separation_deg']:.2f}"
+        if r.get("sun_centroid_separation_deg") is not None and r.get("sun_detected_by") == "registration":
+            sep += f" ({r['sun_centroid_separation_deg']:.2f})"
+        err = r.get("sun_err_deg") or {}
+        truth_err = " / ".join("—" if err.get(k) is None else f"{err[k]:.2f}" for k in ("model", "detected", "centroid"))
         lines.append(f"| {r['case']} | {'yes' if r['bracket'] else 'no'} | {r['projection_true']} → {r['projection_fit']} "
                      f"| {r['sun_zenith_deg']:.1f} | {r['aod_true']:.3f} | {r['aod_fit']:.3f}{sig} "
                      f"| {r['alpha_true']:.2f} / {r['alpha_fit']:.2f} | {r['g_true']:.2f} / {r['g_fit']:.2f} "
                      f"| {r['heading_err_deg']:+.2f} | {r['centre_err_px']:.2f} | {r['ray_err_deg']['p95']:.2f} "
                      f"| {'—' if r.get('lens_radial') is None else format(r['lens_radial'], '+.3f')}"
                      f"{'' if r.get('kb_k1_true') is None else ' (' + format(r['kb_k1_true'], '+.3f') + ')'} "
-                     f"| {sep} | {r['rmse_rel']:.3f} | {r['wall_s']:.0f} "
+                     f"| {sep} | {truth_err} | {r['rmse_rel']:.3f} | {r['wall_s']:.0f} "
                      f"| {r.get('cpu_s', float('nan')):.0f} | {r.get('load_avg', float('nan')):.1f} |")
     (out / "study.md").write_text("\n".join(lines) + "\n\n```json\n" + json.dumps(summary, indent=1) + "\n```\n")
     print(json.dumps(summary, indent=1))

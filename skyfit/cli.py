@@ -381,8 +381,9 @@ def cmd_fit_photo(args) -> int:
         print(f"camera: {cam['projection']}, centre ({cam['cx']:.1f}, {cam['cy']:.1f}) px, radius {cam['radius_px']:.1f} px, "
               f"up azimuth {cam['up_azimuth_deg']:.2f} deg, tilt {cam['tilt_deg'][0]:.2f}/{cam['tilt_deg'][1]:.2f} deg")
         if sun["detected_px"] is not None:
-            print(f"sun: detected at ({sun['detected_px'][0]:.1f}, {sun['detected_px'][1]:.1f}) px, the fitted camera puts it "
-                  f"at ({sun['model_px'][0]:.1f}, {sun['model_px'][1]:.1f}) px: {sun['separation_deg']:.2f} deg apart")
+            how = {"registration": "by its saturated region", "centroid": "at its centroid"}.get(sun.get("detected_by"), "")
+            print(f"sun: detected {how} at ({sun['detected_px'][0]:.1f}, {sun['detected_px'][1]:.1f}) px, the fitted camera "
+                  f"puts it at ({sun['model_px'][0]:.1f}, {sun['model_px'][1]:.1f}) px: {sun['separation_deg']:.2f} deg apart")
         for n in res["notes"]:
             print(f"note: {n}")
         print(f"relative rms {res['metrics']['rmse_rel']:.4f} over {px['used']} px ({px['masked']} masked, "

@@ -417,3 +417,44 @@ def test_calibrate_camera_bad_input_is_one_line(photos, tmp_path, capsys, case):
         argv += ["--time", t]
     argv += ["--location", LOC, "--out", tmp_path / name, "--config", photos / "cheap.yaml"]
     _refused(argv, capsys, tmp_path, *needles)
+
+
+
+def test_the_sun_is_registered_where_the_saturated_region_lies(photos, monkeypatch):
+    """``register_sun`` with a model whose saturated region is lopsided about its sun (two Gaussian lobes, the
+    second 5 px aside: its centroid lies off the sun) and a photo whose saturated region is that region moved by a
+    known shift: it returns the shift to 0.3 px, overlap > 0.85, and the registered sun is the true one, where the
+    region's centroid is > 1.5 px off. Unshifted: no shift."""
+    import dataclasses
+
+    import scipy.ndimage
+
+    scene = fit_photo_module.prepare_scene(photos / "sky.jpg", time=T1, location=LOC)
+    sx, sy = 60.3, 44.6  # the model's sun, inside the circle and clear of the masks
+
+    def lobes(px, py):
+        return (np.exp(-((px - sx) ** 2 + (py - sy) ** 2) / (2 * 3.0**2))
+                + 0.8 * np.exp(-((px - sx + 5.0) ** 2 + (py - sy - 2.0) ** 2) / (2 * 5.0**2)))
+
+    def fake_predict(problem, x, blocks, scene, where):  # the model on blocks: the lobes at each block's centre
+        i, j = np.mgrid[: where.shape[0], : where.shape[1]]
+        c = (blocks.step - 1) / 2.0
+        v = lobes(j * blocks.step + c, i * blocks.step + c)
+        return np.where(where[..., None], v[..., None] * np.array([0.8, 1.0, 0.9]), np.nan)
+
+    monkeypatch.setattr(fit_photo_module, "predict_blocks", fake_predict)
+    yy, xx = np.mgrid[: SHAPE[0], : SHAPE[1]]
+    lum = lobes(xx.astype(float), yy.astype(float))
+    own = lum >= np.sort(lum.ravel())[-80]  # the model's 80 brightest pixels
+    assert not (own & (scene.masks["outside"] | scene.masks.get("obstacles", False))).any()
+    for dx, dy in ((0.0, 0.0), (2.6, -1.4), (-3.2, 2.1)):
+        moved = scipy.ndimage.shift(own.astype(np.float64), (dy, dx), order=1) > 0.5
+        cy, cx = np.argwhere(moved).mean(0)
+        assert math.hypot(cx - sx - dx, cy - sy - dy) > 1.5  # the centroid is off the sun
+        det = dataclasses.replace(scene.detected_sun, x=float(cx), y=float(cy), radius_px=math.sqrt(moved.sum() / math.pi),
+                                  saturated=True, extended=False)
+        doctored = dataclasses.replace(scene, photo=dataclasses.replace(scene.photo, darkest_saturated=moved), detected_sun=det)
+        reg = fit_photo_module.register_sun(doctored, None, None, (sx, sy))
+        assert reg is not None and reg.step == 1 and reg.iou > 0.85
+        assert reg.shift[0] == pytest.approx(dx, abs=0.3) and reg.shift[1] == pytest.approx(dy, abs=0.3)
+        assert (reg.x, reg.y) == pytest.approx((sx + reg.shift[0], sy + reg.shift[1]), abs=1e-9)
