@@ -188,3 +188,22 @@ def test_a_settled_fit_is_not_rebuilt_and_ends_where_the_rebuild_would(sky4, mon
     assert without.convergence["ms_table_builds"] == with_rebuild.convergence["ms_table_builds"] - 1
     assert math.isnan(without.convergence["ms_factor_change"]) and math.isfinite(with_rebuild.convergence["ms_factor_change"])
     torch.testing.assert_close(without.x, with_rebuild.x, rtol=0, atol=0)
+
+
+def test_float32_tables_give_the_float64_factor(sky4, monkeypatch):
+    """The photo fit's Bruneton tables built in float32 (MS_TABLE_DTYPE) and widened: the factor on the sky's
+    samples within 2e-3 of the float64 tables' (the refreshes stop at FACTOR_TOL 1e-2), in the fit's dtype."""
+    from skyfit.fit import photo as fp
+
+    factors = {}
+    for dtype in (None, torch.float32):
+        monkeypatch.setattr(fp, "MS_TABLE_DTYPE", dtype)
+        problem = fp.PhotoProblem.of(_problem(sky4, ["mie_aod_550", "exposure"]), {})
+        problem.follow = False
+        fp.freeze_tables(problem, problem.param.initial_vector(), problem.model.factor_model(), wavelength_nodes_count=None)
+        factors[dtype] = problem.frozen_factor[0]
+        if dtype is not None:
+            assert problem.bruneton[1].multiple.dtype == torch.float64
+    f64, f32 = factors[None], factors[torch.float32]
+    assert f32.dtype == torch.float64 and float(f64.min()) > 1.01  # a factor, and not all one
+    assert 0.0 < float((f32 / f64 - 1).abs().max()) < 2e-3  # float32 did round
