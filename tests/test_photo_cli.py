@@ -424,7 +424,8 @@ def test_the_sun_is_registered_where_the_saturated_region_lies(photos, monkeypat
     """``register_sun`` with a model whose saturated region is lopsided about its sun (two Gaussian lobes, the
     second 5 px aside: its centroid lies off the sun) and a photo whose saturated region is that region moved by a
     known shift: it returns the shift to 0.3 px, overlap > 0.85, and the registered sun is the true one, where the
-    region's centroid is > 1.5 px off. Unshifted: no shift."""
+    region's centroid is > 1.5 px off. Unshifted: no shift. The same region stated 12 px from the model's sun does not
+    reach it and is not used."""
     import dataclasses
 
     import scipy.ndimage
@@ -458,3 +459,7 @@ def test_the_sun_is_registered_where_the_saturated_region_lies(photos, monkeypat
         assert reg is not None and reg.step == 1 and reg.iou > 0.85
         assert reg.shift[0] == pytest.approx(dx, abs=0.3) and reg.shift[1] == pytest.approx(dy, abs=0.3)
         assert (reg.x, reg.y) == pytest.approx((sx + reg.shift[0], sy + reg.shift[1]), abs=1e-9)
+        assert reg.covers_sun and reg.used
+    # a model whose brightest pixels lie 12 px beside its sun (a bright horizon beside a compact core): not used
+    beside = fit_photo_module.register_sun(doctored, None, None, (sx + 12.0, sy))
+    assert beside is not None and beside.iou > 0.85 and not beside.covers_sun and not beside.used

@@ -1392,6 +1392,14 @@ SUN_REGISTRATION_MIN_IOU = 0.7
 by at least this (intersection over union): elsewhere its shape is not the photo's (a flare or a sun disc the model
 lacks, an aureole the fit misses) and the detector's point stays. On the synthetic suite's single photos the
 registered overlap was 0.79-0.98 (docs/photos.md, "The sun: registered, not only detected"). [1]"""
+SUN_REGISTRATION_REACH = 0.25
+"""The model's saturated region stands for the sun only where the model's own sun lies in it or within this fraction
+of its equivalent radius (sqrt(area / pi)) of it (1.5 px at least). A large aureole whose tip stops short of the sun
+is the photo's aureole without the sun's disc and flare, which add a bump at its tip (synthetic case 8: 5.1 px
+short of a region of radius 52 px, 0.10); a region that lies beside the sun is a bright horizon the model puts where
+the photo has a compact core of disc and flare (case 4: 4.7 px from a region of radius 7 px, 0.67; registered,
+it would have moved the sun 12.6 px). On the other single photos of the suite the model's region holds its sun
+(gaps under 0.5 px). [1]"""
 SUN_REGISTRATION_BLOCKS = 5000
 """The model is rendered on at most this many blocks over the saturated region's window and interpolated in log
 radiance to the photo's pixels (its aureole varies over several pixels; 1 s on one core for a 600 x 600 photo)."""
@@ -1407,6 +1415,9 @@ class SunRegistration:
         iou: their overlap (intersection over union) at ``shift``. [1]
         pixels: saturated pixels of the photo's region (the model's region has as many). [px]
         step: block side the model was rendered on before interpolation. [px]
+        covers_sun: the model's saturated region reaches its own sun (:data:`SUN_REGISTRATION_REACH`). Where it
+            does not, the model's brightest pixels lie elsewhere (a bright horizon beside a compact core of sun disc
+            and flare, which the model lacks) and the overlay says nothing about the sun.
     """
 
     x: float
@@ -1415,6 +1426,13 @@ class SunRegistration:
     iou: float
     pixels: int
     step: int
+    covers_sun: bool = True
+
+    @property
+    def used(self) -> bool:
+        """Whether the registered sun stands for the detection: the model's region reaches its sun and overlaps the
+        photo's by :data:`SUN_REGISTRATION_MIN_IOU`."""
+        return self.covers_sun and self.iou >= SUN_REGISTRATION_MIN_IOU
 
 
 def register_sun(scene: PhotoScene, problem, x: torch.Tensor, model_px: Sequence[float],
@@ -1509,7 +1527,11 @@ def register_sun(scene: PhotoScene, problem, x: torch.Tensor, model_px: Sequence
     sx = ix0 - c.shape[1] // 2 + (vertex(c[iy0, ix0 - 1], c[iy0, ix0], c[iy0, ix0 + 1]) if 0 < ix0 < c.shape[1] - 1 else 0.0)
     moved = scipy.ndimage.shift(model_sat.astype(np.float64), (sy, sx), order=1) > 0.5
     iou = float((moved & photo_sat).sum() / max(1, (moved | photo_sat).sum()))
-    return SunRegistration(float(model_px[0] + sx), float(model_px[1] + sy), (float(sx), float(sy)), iou, n_sat, step)
+    mx, my = float(model_px[0]), float(model_px[1])
+    ys_m, xs_m = np.nonzero(model_sat)
+    gap = float(np.sqrt(np.min((xs_m - mx) ** 2 + (ys_m - my) ** 2)))  # from the model's sun to its region [px]
+    covers = gap <= max(1.5, SUN_REGISTRATION_REACH * math.sqrt(n / math.pi))
+    return SunRegistration(mx + float(sx), my + float(sy), (float(sx), float(sy)), iou, n_sat, step, covers)
 
 
 def photo_result(scene: PhotoScene, blocks: BlockImage, prep, problem, res, config: dict, *, laplace: bool) -> dict:
@@ -1545,7 +1567,7 @@ def photo_result(scene: PhotoScene, blocks: BlockImage, prep, problem, res, conf
         centroid = {"px": [float(det.x), float(det.y)], "separation_deg": separation(det.x, det.y)}
         detected_px, sep, by = centroid["px"], centroid["separation_deg"], "centroid"
         reg = register_sun(scene, problem, res.x, model_px)
-        if reg is not None and reg.iou >= SUN_REGISTRATION_MIN_IOU:
+        if reg is not None and reg.used:
             detected_px, sep, by = [reg.x, reg.y], separation(reg.x, reg.y), "registration"
     sig = (result.get("laplace") or {}).get("sigma") or {}
     pred = problem.predict(res.x)[0].detach()
@@ -1579,7 +1601,7 @@ def photo_result(scene: PhotoScene, blocks: BlockImage, prep, problem, res, conf
                      "centroid_separation_deg": None if centroid is None else centroid["separation_deg"],
                      "registration": None if reg is None else {
                          "shift_px": list(reg.shift), "iou": reg.iou, "pixels": reg.pixels, "step_px": reg.step,
-                         "used": reg.iou >= SUN_REGISTRATION_MIN_IOU}}
+                         "covers_sun": reg.covers_sun, "used": reg.used}}
     result["aerosol"] = {"aod_550": vals["mie_aod_550"], "angstrom_alpha": vals["mie_angstrom_alpha"], "g": vals["mie_g"],
                          "rayleigh_scale": vals["rayleigh_scale"],
                          "sigma": {k: sig.get(n) for k, n in (("aod_550", "mie_aod_550"), ("angstrom_alpha", "mie_angstrom_alpha"),
