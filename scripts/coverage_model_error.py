@@ -187,6 +187,9 @@ def one_sky(k: int, args) -> dict:
         expansion = phase_expansion(problem, res.x, term, options=FitOptions(starts=1, adam_steps=0, max_iter=FIT["max_iter"]))
         sigmas["expand"] = error_budget(problem, res.x, lap, term=term, expansion=expansion)
     tot = sigmas["total"]
+    # the numerically corrected estimate (value at x + dx, the shift not an error): error_budget's "corrected"
+    for name in [n for n in sigmas if n in ("total", "expand")]:
+        sigmas[f"{name}_corrected"] = sigmas[name]["corrected"]
     c_unc = time.process_time() - c0
     row = {"sky": k, "two_term_hg": two_term, "truth": t, "fitted": {}, "z_noise": {}, "in68_noise": {}, "in95_noise": {},
            "budget": {kk: tot["budget"].get(kk) for kk in ("chi2_per_dof", "chi2_per_dof_corrected", "floor_relative",
@@ -194,8 +197,11 @@ def one_sky(k: int, args) -> dict:
                                                         "refit_steps_in_sigma", "numerical_tail", "numerical_shift_newton",
                                                         "sigma_numerical", "sigma_discrepancy", "numerical_shift")},
            "discrepancy": {name: {kk: b["budget"].get(kk) for kk in ("discrepancy", "sigma_discrepancy")}
-                           for name, b in sigmas.items()},
+                           for name, b in sigmas.items() if "budget" in b},
            "convergence": res.convergence["reason"], "loss": res.loss,
+           "expand_budget": None if expansion is None else {kk: sigmas["expand"]["budget"].get(kk) for kk in (
+               "sigma_phase", "sigma_phase_spread", "derived")},
+           "budget_derived": tot["budget"].get("derived"),
            "phase_expansion": None if expansion is None else {k: expansion[k] for k in ("values", "loss", "converged", "seconds", "spread")},
            "cpu_s": {"truth_render": info["truth_render_cpu_s"], "fit": c_fit, "uncertainty": c_unc},
            "n_samples": info["n_samples"]}
@@ -207,11 +213,12 @@ def one_sky(k: int, args) -> dict:
         tv = t[n]
         for name, b in [("noise", lap), *sigmas.items()]:
             if p in FREE:
-                v, s_, i68, i95 = res.parameters[p], b["sigma"][p], b["interval68"][p], b["interval95"][p]
+                v, s_, i68, i95 = b["values"][p], b["sigma"][p], b["interval68"][p], b["interval95"][p]
             else:
                 v, s_ = b["derived"][p]["value"], b["derived"][p]["sigma"]
                 i68, i95 = derived_interval(b["derived"][p], z68), derived_interval(b["derived"][p], z95)
-            row["fitted"][n] = v
+            if name == "noise":  # the fit's own value (a corrected estimate has its own)
+                row["fitted"][n] = v
             row[f"z_{name}"][n] = None if not s_ else (v - tv) / s_
             row[f"in68_{name}"][n], row[f"in95_{name}"][n] = inside(i68, tv), inside(i95, tv)
     return row

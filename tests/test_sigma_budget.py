@@ -93,6 +93,25 @@ def test_total_sigma_covers_a_truth_the_noise_sigma_misses(biased_fit):
     assert tot["sigma_mode"] == "total" and tot["sigma_noise"] == lap["sigma"]
 
 
+def test_corrected_estimate_is_the_reference_fit_with_the_noise_sigma(biased_fit):
+    """``corrected``: the value at x + dx (the fitted value plus ``numerical_shift``), its sigma without the shift.
+    With the truth's own renderer as the reference, the corrected estimate is the reference's fit of the same data,
+    so its error is the noise's: |error| / sigma_corrected <= 2 where the uncorrected value is > 3 noise sigma off,
+    and it is nearer the truth than the fitted value on every parameter the bias moved by more than 3 noise sigma."""
+    prob, res, lap, truth = biased_fit
+    b = error_budget(prob, res.x, lap, reference=_fine(), floor=False)
+    c = b["corrected"]
+    moved = [n for n in FREE if abs(res.parameters[n] - truth[n]) > 3 * lap["sigma"][n]]
+    assert moved, "the fixture's bias should exceed the noise"
+    for n in FREE:
+        assert c["values"][n] == pytest.approx(res.parameters[n] + b["budget"]["numerical_shift"][n], rel=1e-9, abs=1e-12)
+        assert c["sigma"][n] <= b["sigma"][n] * (1 + 1e-9)
+        assert abs(c["values"][n] - truth[n]) <= 2 * c["sigma"][n], (n, c["values"][n], truth[n], c["sigma"][n])
+    for n in moved:
+        assert abs(c["values"][n] - truth[n]) < abs(res.parameters[n] - truth[n])
+    assert c["derived"]["mie_aod_550"]["value"] != pytest.approx(b["derived"]["mie_aod_550"]["value"], rel=1e-6)
+
+
 def test_floor_recovers_a_known_extra_relative_noise():
     """Data = model (1 + 0.02 N) + sigma N with sigma the stated 1 % noise: chi^2/dof = 5; the floor solving
     chi^2 = dof is 0.02 within its 68 % range (chi^2 at dof +- sqrt(2 dof)) and 10 %."""

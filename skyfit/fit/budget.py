@@ -761,7 +761,10 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
 
     Returns:
         ``lap``'s keys with ``sigma``, ``interval68``, ``interval95``, ``covariance``, ``correlation``,
-        ``derived`` of the total covariance, ``sigma_mode`` "total", ``sigma_noise`` (the Laplace sigma)
+        ``derived`` of the total covariance, ``corrected`` (the numerically corrected estimate: ``values`` at
+        x + dx with ``sigma``, ``interval68``, ``interval95`` and ``derived`` of the covariance without the
+        shift's outer product, the tail, discrepancy, phase term and noise kept), ``sigma_mode`` "total",
+        ``sigma_noise`` (the Laplace sigma)
         and ``budget``: ``sigma_noise``, ``sigma_numerical``, ``sigma_discrepancy`` (name -> [SI]; the chosen
         model's), ``sigma_discrepancy_floor`` and ``sigma_discrepancy_sandwich`` (each model's, where computed),
         ``discrepancy`` (``model``, and for the sandwich ``clusters`` G, ``min_per_cluster`` and the
@@ -828,13 +831,21 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
         expansion = phase_expansion(problem, x, term, reference=reference, options=options)
     e = torch.zeros(P, dtype=torch.float64) if expansion is None else expansion["e"].to(torch.float64)
     cov_total = cov_noise + share + torch.outer(dx, dx) + torch.outer(tail, tail)
+    # the corrected estimate (GUM 3.2.4: correct for a recognised systematic effect): at x + dx, the shift not an
+    # error, what is left of it (the tail) still one
+    cov_corr = cov_noise + share + torch.outer(tail, tail)
     spread = None
     if expansion is not None and expansion.get("covariance") is not None and pd:
         # at least what the two-term refit allows, along every direction (loewner_upper), then its shift
-        spread = psd_part(loewner_upper(cov_total, expansion["covariance"].to(torch.float64)) - cov_total)
+        cov_exp = expansion["covariance"].to(torch.float64)
+        spread = psd_part(loewner_upper(cov_total, cov_exp) - cov_total)
         cov_total = cov_total + spread
+        cov_corr = cov_corr + psd_part(loewner_upper(cov_corr, cov_exp) - cov_corr)
     cov_total = cov_total + torch.outer(e, e)
+    cov_corr = cov_corr + torch.outer(e, e)
     out = {**lap, **covariance_summary(problem, x, cov_total, pd)}
+    corr = covariance_summary(problem, x + dx.to(x.dtype), cov_corr, pd)
+    out["corrected"] = {k: corr[k] for k in ("values", "sigma", "interval68", "interval95", "derived")}
     out["positive_definite"] = pd
     out["sigma_mode"] = "total"
     out["sigma_noise"] = lap["sigma"]
