@@ -417,6 +417,8 @@ def cmd_fit(args) -> int:
                "plots": res.get("plots", [])}
     if "laplace" in res:
         summary["laplace_sigma"] = res["laplace"]["sigma"]
+        if "corrected" in res["laplace"]:
+            summary["laplace_corrected"] = {k: res["laplace"]["corrected"][k] for k in ("values", "sigma")}
     if "selection" in res:
         summary["selection"] = {k: res["selection"][k] for k in ("chosen", "components", "heldout_choice", "heldout_agrees", "why")}
     if args.json:
@@ -428,6 +430,12 @@ def cmd_fit(args) -> int:
         sig = res.get("laplace", {}).get("sigma", {})
         for n, v in summary["free"].items():
             print(f"{n:22s} {v}" + (f" +- {sig[n]:.3g} (Laplace)" if sig.get(n) is not None else ""))
+        cor = res.get("laplace", {}).get("corrected")
+        if cor and any(cor["values"][n] != v for n, v in summary["free"].items()):
+            # the numerically corrected estimate beside the fitted one (docs/uncertainty.md)
+            print("corrected for the fit's setting (laplace.corrected): " + ", ".join(
+                f"{n} {cor['values'][n]:.6g}" + (f" +- {cor['sigma'][n]:.3g}" if cor["sigma"].get(n) is not None else "")
+                for n in summary["free"]))
         print(f"loss {m['loss']:.6g}  rmse {m['rmse']:.4g} {m['rmse_units']}  delta_e {m['delta_e']:.3g}  "
               f"({m['n_samples']} samples; {c['reason']} after {c['iterations']} L-BFGS iterations, {res['seconds']:.1f} s)")
         print(f"wrote {args.out}")

@@ -242,6 +242,9 @@ def test_cli_sample_then_resume_and_bad_inputs(fitted, tmp_path, capsys):
     d = fitted
     res = json.loads((d / "a.json").read_text())
     assert set(res["laplace"]["sigma"]) == {"mie_g", "exposure"} and res["laplace"]["positive_definite"]
+    cor, shift = res["laplace"]["corrected"], res["laplace"]["budget"]["numerical_shift"]
+    for n in ("mie_g", "exposure"):  # the corrected estimate reaches RESULT.json: the fitted value plus the shift
+        assert cor["values"][n] == pytest.approx(res["parameters"][n] + shift[n], rel=1e-9)
     base = ["sample", d / "sky.exr", "--config", "earth", "--init", d / "a.json", "--threads", "1"]
     out = tmp_path / "s"
     rc, so, se = _cli(base + ["--out", out, "--walkers", "8", "--steps", "60", "--json"], capsys)
