@@ -830,19 +830,20 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
     if expansion is None and expand:
         expansion = phase_expansion(problem, x, term, reference=reference, options=options)
     e = torch.zeros(P, dtype=torch.float64) if expansion is None else expansion["e"].to(torch.float64)
-    cov_total = cov_noise + share + torch.outer(dx, dx) + torch.outer(tail, tail)
+    cov_exp = (expansion["covariance"].to(torch.float64)
+               if expansion is not None and expansion.get("covariance") is not None and pd else None)
+
+    def phase_added(cov: Tensor) -> tuple[Tensor, Tensor | None]:
+        """``cov`` with the phase term: at least what the two-term refit allows, along every direction
+        (loewner_upper), then its shift; and the spread that added."""
+        spread = None if cov_exp is None else psd_part(loewner_upper(cov, cov_exp) - cov)
+        cov = cov if spread is None else cov + spread
+        return cov + torch.outer(e, e), spread
+
+    cov_total, spread = phase_added(cov_noise + share + torch.outer(dx, dx) + torch.outer(tail, tail))
     # the corrected estimate (GUM 3.2.4: correct for a recognised systematic effect): at x + dx, the shift not an
     # error, what is left of it (the tail) still one
-    cov_corr = cov_noise + share + torch.outer(tail, tail)
-    spread = None
-    if expansion is not None and expansion.get("covariance") is not None and pd:
-        # at least what the two-term refit allows, along every direction (loewner_upper), then its shift
-        cov_exp = expansion["covariance"].to(torch.float64)
-        spread = psd_part(loewner_upper(cov_total, cov_exp) - cov_total)
-        cov_total = cov_total + spread
-        cov_corr = cov_corr + psd_part(loewner_upper(cov_corr, cov_exp) - cov_corr)
-    cov_total = cov_total + torch.outer(e, e)
-    cov_corr = cov_corr + torch.outer(e, e)
+    cov_corr, _ = phase_added(cov_noise + share + torch.outer(tail, tail))
     out = {**lap, **covariance_summary(problem, x, cov_total, pd)}
     corr = covariance_summary(problem, x + dx.to(x.dtype), cov_corr, pd)
     out["corrected"] = {k: corr[k] for k in ("values", "sigma", "interval68", "interval95", "derived")}
