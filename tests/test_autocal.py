@@ -322,3 +322,22 @@ def test_grow_outlier_mask_keeps_structures_not_noise():
     assert m[missed].all() and m[cloud].all()
     noise = used & ~dilation(missed | cloud, disk(4))
     assert m[noise].mean() < 0.01
+
+
+def test_circle_of_a_large_photo_found_on_a_reduced_copy(monkeypatch):
+    """make_sky's image (with its dark skyline) 8 times larger and blurred by 8 px, as a 2000 px photo's rim spans
+    several pixels: detect_circle finds it on a copy reduced to CIRCLE_MAX_SIDE and scales it back (centre within
+    1 px, radius within 1.5 px of 800); at full size its 1-2 px thresholds find no circle."""
+    import skimage.filters
+    import skimage.transform
+
+    from skyfit.camera import autocal
+
+    _, rgb, _, _, _, _ = make_sky(skyline="dark")
+    big = skimage.filters.gaussian(skimage.transform.rescale(rgb @ LUMA, 8, order=1), sigma=8.0)
+    cx, cy = (137.3 + 0.5) * 8 - 0.5, (112.6 + 0.5) * 8 - 0.5  # pixel centres: x -> 8 (x + 1/2) - 1/2
+    c = detect_circle(big)
+    assert math.hypot(c.cx - cx, c.cy - cy) < 1.0 and abs(c.radius - 800.0) < 1.5, c
+    monkeypatch.setattr(autocal, "CIRCLE_MAX_SIDE", 10**6)
+    with pytest.raises(CalibrationError, match="no fisheye circle found"):
+        detect_circle(big)

@@ -463,3 +463,89 @@ def test_the_sun_is_registered_where_the_saturated_region_lies(photos, monkeypat
     # a model whose brightest pixels lie 12 px beside its sun (a bright horizon beside a compact core): not used
     beside = fit_photo_module.register_sun(doctored, None, None, (sx + 12.0, sy))
     assert beside is not None and beside.iou > 0.85 and not beside.covers_sun and not beside.used
+
+
+# -- a photo larger than the fit's working size -------------------------------------------------------
+BIG_CAM = dict(projection="equidistant", cx=2 * CAM["cx"] + 0.5, cy=2 * CAM["cy"] + 0.5, radius=2 * CAM["radius"],
+               up_azimuth_deg=CAM["up_azimuth_deg"])
+""":data:`CAM` on a sensor of twice the pixels: pixel (x, y) of the small image is the 2 x 2 block centred at
+(2 x + 1/2, 2 y + 1/2) of this one."""
+
+
+def test_a_large_photo_is_fitted_reduced_and_reported_in_its_own_pixels(photos, tmp_path, capsys, monkeypatch):
+    """A 192 x 224 photo with the working size set to 120 px is fitted at half size (block means); RESULT.json's
+    camera, sun and pixel counts are in the photo's own pixels (the truth :data:`BIG_CAM` within the tolerances of
+    :func:`check_photo_result`, doubled), a user's full-size mask masks exactly its pixels, and a full-size
+    CAMERA.yaml given back comes out unchanged."""
+    shape = (2 * SHAPE[0], 2 * SHAPE[1])
+    lin = linear_sky(T1, shape, BIG_CAM)
+    Image.fromarray(codes8(lin)).save(tmp_path / "big.jpg", quality=95)
+    mask = np.zeros(shape, np.uint8)
+    mask[60:80, 100:120] = 255  # 400 px inside the lens circle, on whole 2 x 2 blocks
+    Image.fromarray(mask).save(tmp_path / "mask.png")
+    monkeypatch.setattr(fit_photo_module, "PHOTO_MAX_SIDE", 120)
+    out = tmp_path / "out"
+    out.mkdir()
+    rc, so, se = run(_fit_argv(tmp_path / "big.jpg", out / "r.json", photos / "cheap.yaml", T1, "--mask", tmp_path / "mask.png"),
+                     capsys)
+    assert rc == 0, se
+    r = json.loads((out / "r.json").read_text())
+    assert r["photo"]["shape"] == list(shape) and r["photo"]["reduced"] == {"factor": 2, "original_shape": list(shape)}
+    assert any("fitted at 1/2 of its size" in n for n in r["notes"])
+    cam, sun = r["camera"], r["sun"]
+    assert cam["size"] == list(shape) and cam["width"] == shape[1] and cam["height"] == shape[0]
+    assert abs(cam["cx"] - BIG_CAM["cx"]) < 2.0 and abs(cam["cy"] - BIG_CAM["cy"]) < 2.0
+    assert abs(cam["radius_px"] - BIG_CAM["radius"]) < 3.0 and abs(cam["circle"]["radius"] - BIG_CAM["radius"]) < 3.0
+    assert sun["detected_px"] is not None and 0 <= sun["separation_deg"] < 8.0
+    # the reported sun is where the reported camera puts SPA's sun, in the photo's pixels
+    lat, lon = (float(v) for v in LOC.split(","))
+    sp = sun_position(parse_time(T1), lat, lon, 0.0)
+    keys = ("projection", "size", "cx", "cy", "radius_px", "focal_px", "kb_coeffs", "up_azimuth_deg", "tilt_deg", "max_zenith_deg")
+    fitted_cam = FisheyeCamera.from_metadata({k: v for k, v in cam.items() if k in keys})
+    px = fitted_cam.direction_to_pixel(zenith_azimuth_to_enu(torch.tensor(math.radians(float(sp.zenith)), dtype=torch.float64),
+                                                             torch.tensor(math.radians(float(sp.azimuth)), dtype=torch.float64)))
+    assert [float(v) for v in px] == pytest.approx(sun["model_px"], abs=0.05)
+    assert r["pixels"]["masked_by"]["user"] == 400 and r["pixels"]["used"] % 4 == 0
+    # a full-size CAMERA.yaml goes in reduced and comes out as given
+    (tmp_path / "camera.yaml").write_text(f"projection: equidistant\ncx: {BIG_CAM['cx']}\ncy: {BIG_CAM['cy']}\n"
+                                          f"radius_px: {BIG_CAM['radius']}\nup_azimuth_deg: {BIG_CAM['up_azimuth_deg']}\n")
+    rc, so, se = run(_fit_argv(tmp_path / "big.jpg", out / "r2.json", photos / "cheap.yaml", T1, "--camera",
+                               tmp_path / "camera.yaml", "--no-plots"), capsys)
+    assert rc == 0, se
+    r2 = json.loads((out / "r2.json").read_text())["camera"]
+    assert (r2["cx"], r2["cy"], r2["radius_px"]) == pytest.approx((BIG_CAM["cx"], BIG_CAM["cy"], BIG_CAM["radius"]), abs=1e-9)
+    # a mask of the photo's reduced size is refused, one line
+    Image.fromarray(mask[::2, ::2]).save(tmp_path / "mask_half.png")
+    _refused(_fit_argv(tmp_path / "big.jpg", out / "r3.json", photos / "cheap.yaml", T1, "--mask", tmp_path / "mask_half.png"),
+             capsys, out, "mask_half.png")
+
+
+def test_reduced_photo_keeps_means_and_bounds():
+    """``reduced_photo`` by 2 against sums written out: means of the finite values, variance / 16, a clipped pixel
+    makes its block's channel a lower bound, a black one an upper bound, both make it both; valid where the whole
+    block is; the ragged last row dropped."""
+    from skyfit.io.photo import LinearPhoto, reduced_photo
+
+    rng = np.random.default_rng(1)
+    rgb = rng.uniform(0.1, 1.0, (5, 4, 3))
+    var = rng.uniform(0.0, 0.01, (5, 4, 3))
+    hi = np.zeros((5, 4, 3), bool)
+    lo = np.zeros((5, 4, 3), bool)
+    hi[0, 1, 2] = True  # block (0, 0), blue
+    lo[3, 3, 0] = True  # block (1, 1), red
+    hi[2, 2, 1] = lo[3, 2, 1] = True  # block (1, 1), green: both
+    valid = np.ones((5, 4), bool)
+    valid[1, 3] = False  # block (0, 1)
+    ph = LinearPhoto(rgb, var, hi, lo, valid, rgb / 2, hi.any(-1), "x.jpg", {"format": "jpeg"})
+    r = reduced_photo(ph, 2)
+    assert r.rgb.shape == (2, 2, 3) and r.meta["reduced"] == {"factor": 2, "original_shape": [5, 4]}
+    for i in range(2):
+        for j in range(2):
+            blk = (slice(2 * i, 2 * i + 2), slice(2 * j, 2 * j + 2))
+            np.testing.assert_allclose(r.rgb[i, j], rgb[blk].reshape(4, 3).sum(0) / 4, rtol=1e-14)
+            np.testing.assert_allclose(r.variance[i, j], var[blk].reshape(4, 3).sum(0) / 16, rtol=1e-14)
+    assert r.censored_high[0, 0].tolist() == [False, False, True] and not r.censored_low[0, 0].any()
+    assert r.censored_low[1, 1].tolist() == [True, True, False] and r.censored_high[1, 1].tolist() == [False, True, False]
+    assert r.valid.tolist() == [[True, False], [True, True]]
+    assert r.darkest_saturated.tolist() == [[True, False], [False, True]]
+    assert reduced_photo(ph, 1) is ph

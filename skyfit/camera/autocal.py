@@ -216,6 +216,14 @@ def _circle_params(model) -> tuple[float, float, float]:
     return float(x0), float(y0), float(r0)
 
 
+CIRCLE_MAX_SIDE = 1000
+""":func:`detect_circle` works on a copy reduced by an integer factor (block means, ``skimage.transform.
+downscale_local_mean``) to at most this many pixels on the longer side, and scales the circle back. Its pixel
+thresholds (Canny's sigma 1.5, RANSAC's 2 and 1 px, :data:`BEYOND_PX`) were set on photos of 120-800 px, whose rim
+blurs over 1-2 px; the same rim in a 3000 px photo spans 5-10 px and its crossings scatter beyond them (the 600 px
+synthetic case 2 upscaled to 3000 px: "only 47 % of the visible rim lies on one circle"). [px]"""
+
+
 def detect_circle(luminance: np.ndarray, valid: np.ndarray | None = None, *, seed: int = 0) -> Circle:
     """The fisheye's image circle: the edge of the bright disc against the dark surround.
 
@@ -240,12 +248,24 @@ def detect_circle(luminance: np.ndarray, valid: np.ndarray | None = None, *, see
             full-frame image with no dark surround, or under 50 % of the visible rim on one circle).
     """
     lum = _check_image(luminance, "luminance")
-    h, w = lum.shape
     valid = np.isfinite(lum) if valid is None else np.asarray(valid, dtype=bool)
     if valid.shape != lum.shape:
         raise CalibrationError(f"valid mask shape {valid.shape} differs from the image's {lum.shape}")
     valid = valid & np.isfinite(lum)
     lum = np.where(valid, lum, 0.0)
+    k = math.ceil(max(lum.shape) / CIRCLE_MAX_SIDE)
+    if k > 1:  # a block's centre (k - 1) / 2 px from its first pixel: x = k x' + (k - 1) / 2
+        small = _detect_circle(skimage.transform.downscale_local_mean(lum, (k, k)),
+                               skimage.transform.downscale_local_mean(valid.astype(np.float64), (k, k)) > 0.999, seed)
+        return Circle(k * small.cx + 0.5 * (k - 1), k * small.cy + 0.5 * (k - 1), k * small.radius, small.inlier_fraction,
+                      k * small.residual_px)
+    return _detect_circle(lum, valid, seed)
+
+
+def _detect_circle(lum: np.ndarray, valid: np.ndarray, seed: int) -> Circle:
+    """:func:`detect_circle` on an image of at most :data:`CIRCLE_MAX_SIDE` pixels a side (``lum`` 0 where not
+    ``valid``)."""
+    h, w = lum.shape
     bright = float(np.percentile(lum[valid], 90)) if valid.any() else 0.0
     if not bright > 0:
         raise CalibrationError("no fisheye circle found: the image is black")

@@ -49,7 +49,7 @@ from ..camera.autocal import (SRGB_LUMA, CalibrationError, CameraGuess, Circle, 
 from ..camera.fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, theta_to_rho, zenith_azimuth_to_enu
 from ..camera.masks import SUN_MASK_MAX_DEG, grow_outlier_mask, obstacle_mask, sun_mask
 from ..camera.sun import parse_location, parse_time, sun_position
-from ..io.photo import LinearPhoto, read_photo
+from ..io.photo import LinearPhoto, read_photo, reduced_photo
 from .data import Observation
 from .model import FitProblem, aerosol_log_depth, applied_lens, lens_directions, tilt_directions
 from .optimise import fit as optimise
@@ -127,6 +127,9 @@ class PhotoScene:
         masks: (H, W) bool, True = not used: ``outside``, ``horizon``, ``sun``, ``obstacles``, ``user``.
         notes: what a user should know (estimated exposures, hidden sun, ...).
         seconds: time of each step so far. [s]
+        scale: the photo as read has ``scale`` x ``scale`` pixels per pixel of ``photo``, the camera, the sun and
+            the masks (a large photo is fitted reduced: :data:`PHOTO_MAX_SIDE`); RESULT.json gives pixels of the
+            photo as read.
     """
 
     photo: LinearPhoto
@@ -142,6 +145,8 @@ class PhotoScene:
     masks: dict
     notes: list
     seconds: dict
+    scale: int = 1
+    """Pixels of the photo as read per pixel of ``photo`` (:data:`PHOTO_MAX_SIDE`; 1: fitted at full size)."""
 
     @property
     def excluded(self) -> np.ndarray:
@@ -249,6 +254,21 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
     if not isinstance(photo, LinearPhoto):
         photo = read_photo(photo, linear=linear, exposures=exposures, response=response)
     src = photo.source
+    H, W = photo.rgb.shape[:2]
+    scale = reduction_factor((H, W))
+    if mask is not None:
+        mask = np.asarray(mask, bool)
+        if mask.shape != (H, W):
+            raise PhotoFitError(f"photo {src}: the mask is {mask.shape[0]}x{mask.shape[1]}, the photo {H}x{W}")
+    if scale > 1:
+        photo = reduced_photo(photo, scale)
+        h, w = photo.rgb.shape[:2]
+        if mask is not None:  # a block is ignored where any of its pixels is
+            mask = mask[: h * scale, : w * scale].reshape(h, scale, w, scale).any((1, 3))
+        photo.meta.setdefault("notes", [])
+        photo.meta["notes"] = list(photo.meta["notes"]) + [
+            f"the {H}x{W} px photo is fitted at 1/{scale} of its size ({h}x{w} px of {scale}x{scale} px means; "
+            f"skyfit.fit.photo.PHOTO_MAX_SIDE {PHOTO_MAX_SIDE}); RESULT.json's pixel positions are the photo's own"]
     seconds["read"] = _now() - t0
     h, w = photo.rgb.shape[:2]
     try:
@@ -273,9 +293,11 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
         else:
             if isinstance(camera, (str, Path)):
                 camera = read_camera(camera)
-            cam = camera if isinstance(camera, FisheyeCamera) else camera_from_dict(camera, (h, w))
-            if tuple(cam.shape) != (h, w):
-                raise PhotoFitError(f"photo {src}: the camera is for {cam.height}x{cam.width} images, the photo is {h}x{w}")
+            cam = camera if isinstance(camera, FisheyeCamera) else camera_from_dict(camera, (H, W))
+            if tuple(cam.shape) != (H, W):
+                raise PhotoFitError(f"photo {src}: the camera is for {cam.height}x{cam.width} images, the photo is {H}x{W}")
+            if scale > 1:
+                cam = scaled_camera(cam, scale, (h, w))
             cxy = (float(cam.cx), float(cam.cy))
             axis = symmetry_axis(_luminance(np.where(np.isfinite(photo.rgb), photo.rgb, 0.0)), *cxy, float(cam.r90),
                                  photo.valid)
@@ -291,7 +313,22 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
         raise PhotoFitError(f"photo {src}: no sky pixel left (the lens circle, horizon, sun and masks cover everything)")
     return PhotoScene(photo, sz, sa, float(sp.distance_au), when.isoformat(),
                       {"latitude_deg": float(lat), "longitude_deg": float(lon), "elevation_m": float(elev)},
-                      cam, candidates, detected, circle, masks, notes, seconds)
+                      cam, candidates, detected, circle, masks, notes, seconds, scale)
+
+
+PHOTO_MAX_SIDE = 1200
+"""A photo whose longer side exceeds this is fitted reduced by the smallest integer factor that brings it within
+(:func:`skyfit.io.photo.reduced_photo`: block means, censoring kept as bounds). The fit uses about
+:data:`TARGET_SAMPLES` blocks whatever the size, and the calibration's and the masks' pixel scales (Canny's sigma,
+RANSAC thresholds, the obstacles' texture window and morphology) were set on photos of 120-800 px; at full size a
+3000 x 3000 photo took 5.3 GB and 78 s against 47 s for the same sky at 600 px, its masks alone 23 s
+(docs/photos.md, "Large photos"). [px]"""
+
+
+def reduction_factor(shape: tuple[int, int], max_side: int | None = None) -> int:
+    """The integer factor :func:`prepare_scene` reduces a photo of ``shape`` (H, W) by to bring its longer side
+    within ``max_side`` (None: :data:`PHOTO_MAX_SIDE`); 1: none. [1]"""
+    return max(1, math.ceil(max(shape) / (PHOTO_MAX_SIDE if max_side is None else max_side)))
 
 
 def cameras_from_image(photo: LinearPhoto, sun_zenith_deg: float, sun_azimuth_deg: float,
@@ -390,12 +427,26 @@ class BlockImage:
 def scaled_camera(cam: FisheyeCamera, step: int, shape: tuple[int, int]) -> FisheyeCamera:
     """The camera of an image of ``step`` x ``step`` block means: block (i, j) covers pixels
     [i step, (i + 1) step), its centre at pixel (i step + (step - 1) / 2) of the photo."""
-    meta = cam.to_metadata()
+    return FisheyeCamera.from_metadata(rescaled_camera_meta(cam.to_metadata(), 1.0 / step, shape))
+
+
+def rescaled_camera_meta(meta: dict, scale: float, shape: tuple[int, int]) -> dict:
+    """A camera's metadata (:meth:`FisheyeCamera.to_metadata`, or a photo fit's RESULT.json ``camera``, with its
+    ``circle``) for an image of ``shape`` (H, W) with ``scale`` of its pixels per pixel: x -> scale (x + 1/2) - 1/2
+    (pixel centres; ``scale`` 1/step gives :func:`scaled_camera`'s blocks, an integer the full photo of a reduced
+    one), lengths times ``scale``."""
+    out = dict(meta)
     h, w = shape
-    meta.update(size=[h, w] if h != w else h, cx=(meta["cx"] - (step - 1) / 2.0) / step,
-                cy=(meta["cy"] - (step - 1) / 2.0) / step, radius_px=meta["radius_px"] / step,
-                focal_px=meta["focal_px"] / step)
-    return FisheyeCamera.from_metadata(meta)
+    at = lambda v: scale * (float(v) + 0.5) - 0.5  # noqa: E731
+    out.update(size=[h, w] if h != w else h, width=w, height=h, cx=at(meta["cx"]), cy=at(meta["cy"]))
+    for k in ("radius_px", "focal_px"):
+        if meta.get(k) is not None:
+            out[k] = scale * float(meta[k])
+    if isinstance(meta.get("circle"), dict):
+        c = dict(meta["circle"])
+        c.update(cx=at(c["cx"]), cy=at(c["cy"]), radius=scale * float(c["radius"]), residual_px=scale * float(c["residual_px"]))
+        out["circle"] = c
+    return out
 
 
 def _blocks(a: np.ndarray, step: int, h: int, w: int) -> np.ndarray:
@@ -936,8 +987,10 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     result["convergence"]["ms_table_builds"] = shared.get("builds", 0)  # every Bruneton build of this photo's fits
     result["seconds"] = sum(timings.values())
     model_rgb = predict_blocks(problem, res.x, blocks, scene, blocks.sky | blocks.candidate)
-    return PhotoFit(result, problem, res.x, scene, blocks, blocks.usable, model_rgb,
-                    camera_from_result(scene.camera, problem.param.physical_dict(res.x)))
+    cam = camera_from_result(scene.camera, problem.param.physical_dict(res.x))
+    if scene.scale > 1:  # the photo's own pixels, as RESULT.json's camera
+        cam = FisheyeCamera.from_metadata(rescaled_camera_meta(cam.to_metadata(), float(scene.scale), tuple(result["photo"]["shape"])))
+    return PhotoFit(result, problem, res.x, scene, blocks, blocks.usable, model_rgb, cam)
 
 
 def _continuation(problem: FitProblem, x: torch.Tensor, free) -> tuple[dict, tuple | None]:
@@ -1614,6 +1667,32 @@ def photo_result(scene: PhotoScene, blocks: BlockImage, prep, problem, res, conf
     result["photo"]["shape"] = list(scene.photo.rgb.shape[:2])
     result["notes"] = list(scene.notes)
     result["time"], result["location"] = scene.time, scene.location
+    return _in_photo_pixels(result, scene.scale)
+
+
+def _in_photo_pixels(result: dict, scale: int) -> dict:
+    """A photo fit's RESULT.json with the pixels of a reduced photo (:attr:`PhotoScene.scale`) turned into the photo's
+    own: the camera and its circle (:func:`rescaled_camera_meta`), the sun's positions and radius, the registration's
+    shift and step, the pixel counts (each reduced pixel stands for scale^2) and ``photo.shape``; ``photo.reduced``
+    says by what. Unchanged for ``scale`` 1."""
+    if scale == 1:
+        return result
+    at = lambda p: None if p is None else [scale * (float(v) + 0.5) - 0.5 for v in p]  # noqa: E731
+    shape = result["photo"].get("reduced", {}).get("original_shape") or [scale * v for v in result["photo"]["shape"]]
+    result["camera"] = rescaled_camera_meta(result["camera"], float(scale), tuple(shape))
+    sun = result["sun"]
+    sun.update(model_px=at(sun["model_px"]), detected_px=at(sun["detected_px"]), centroid_px=at(sun.get("centroid_px")))
+    if sun.get("detected_radius_px") is not None:
+        sun["detected_radius_px"] = scale * sun["detected_radius_px"]
+    if sun.get("registration"):
+        reg = sun["registration"]
+        reg.update(shift_px=[scale * v for v in reg["shift_px"]], step_px=scale * reg["step_px"], pixels=scale ** 2 * reg["pixels"])
+    px = result["pixels"]
+    for k in ("used", "masked", "censored"):
+        px[k] *= scale ** 2
+    px["block_px"] *= scale
+    px["masked_by"] = {k: v * scale ** 2 for k, v in px["masked_by"].items()}
+    result["photo"]["shape"] = list(shape)
     return result
 
 
@@ -1663,13 +1742,15 @@ def report_png(pf: PhotoFit, path: str | Path) -> Path:
     ax[3].imshow(used)
     ax[3].set_title("used (green), censored (red), masked (blue)")
     sun = pf.result["sun"]
+    per = b.step * pf.scene.scale  # pixels of the photo as read per block
+    on = lambda p: ([(p[0] + 0.5) / per - 0.5], [(p[1] + 0.5) / per - 0.5])  # noqa: E731
     for a in ax:
         a.set_axis_off()
-        a.plot([sun["model_px"][0] / b.step], [sun["model_px"][1] / b.step], "y+", ms=12)
+        a.plot(*on(sun["model_px"]), "y+", ms=12)
         if sun["detected_px"]:
-            a.plot([sun["detected_px"][0] / b.step], [sun["detected_px"][1] / b.step], "mx", ms=8)
+            a.plot(*on(sun["detected_px"]), "mx", ms=8)
         if sun.get("centroid_px") and sun["centroid_px"] != sun["detected_px"]:
-            a.plot([sun["centroid_px"][0] / b.step], [sun["centroid_px"][1] / b.step], "c.", ms=6)
+            a.plot(*on(sun["centroid_px"]), "c.", ms=6)
     fig.suptitle(f"{Path(pf.scene.photo.source).name}: AOD550 {pf.result['aerosol']['aod_550']:.3f}, "
                  f"alpha {pf.result['aerosol']['angstrom_alpha']:.2f}, g {pf.result['aerosol']['g']:.2f}")
     fig.tight_layout()

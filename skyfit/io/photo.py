@@ -1162,6 +1162,43 @@ def read_photo(path, *, linear: bool = False, exposures: Sequence[float] | None 
     return _read_single(p, kind, linear, exposures, response)
 
 
+def reduced_photo(photo: LinearPhoto, factor: int) -> LinearPhoto:
+    """``photo`` at 1 / ``factor`` of its resolution: block means of ``factor`` x ``factor`` pixels (the ragged right
+    and bottom edges dropped), each a pixel of the result (pixel (i, j) of it centred at pixel (i f + (f - 1) / 2,
+    j f + (f - 1) / 2) of the original). The censoring keeps its meaning as bounds on the mean: a channel with a
+    clipped pixel is a lower bound (its clipped pixels hold their clip level, below their truth), one with a black
+    pixel an upper bound; a block with both is flagged both ways, which no fit takes as a bound. The variance is
+    the mean's (sum / f^4: independent pixels); a pixel is valid where its whole block is. ``meta["reduced"]``
+    records the factor and the original shape. ``factor`` 1 returns ``photo`` itself. Block sums by reshaping: a
+    few lines of numpy that keep each field's dtype and meaning, where ``skimage.transform.downscale_local_mean``
+    would pad the edges and average the flags."""
+    f = int(factor)
+    if f < 1:
+        raise PhotoError(f"{photo.source}: reduction factor must be >= 1, got {factor}")
+    if f == 1:
+        return photo
+    H, W = photo.rgb.shape[:2]
+    h, w = H // f, W // f
+    if h < 1 or w < 1:
+        raise PhotoError(f"{photo.source}: {H}x{W} px cannot be reduced by {f}")
+
+    def blocks(a: np.ndarray) -> np.ndarray:  # (h, w, f * f, ...)
+        a = a[: h * f, : w * f]
+        return a.reshape(h, f, w, f, *a.shape[2:]).swapaxes(1, 2).reshape(h, w, f * f, *a.shape[2:])
+
+    with np.errstate(invalid="ignore"):
+        finite = np.isfinite(photo.rgb)
+        n = blocks(finite).sum(2)
+        rgb = np.where(n > 0, blocks(np.where(finite, photo.rgb, 0.0)).sum(2) / np.maximum(n, 1), np.nan)
+        darkest = blocks(np.nan_to_num(photo.darkest)).mean(2)
+    meta = {**photo.meta, "reduced": {"factor": f, "original_shape": [H, W]}}
+    return dataclasses.replace(
+        photo, rgb=rgb, variance=blocks(photo.variance).sum(2) / float(f) ** 4,
+        censored_high=blocks(photo.censored_high).any(2), censored_low=blocks(photo.censored_low).any(2),
+        valid=blocks(photo.valid).all(2), darkest=darkest, darkest_saturated=blocks(photo.darkest_saturated).any(2),
+        meta=meta)
+
+
 def _exr_has_skyfit_metadata(path: Path) -> bool | None:
     """True/False from the EXR header alone; None when the header cannot be read."""
     from .exr import METADATA_KEY
@@ -1210,5 +1247,6 @@ __all__ = [
     "PhotoError",
     "is_photo_path",
     "read_photo",
+    "reduced_photo",
     "write_response_table",
 ]
