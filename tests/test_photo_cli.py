@@ -259,6 +259,12 @@ def test_bad_photo_to_evaluate_is_one_line(photos, fitted, tmp_path, capsys, cas
     _refused(["evaluate", fitted, photos / name, "--time", time, "--location", LOC, "--json"], capsys, tmp_path, *needles)
 
 
+def test_evaluate_a_photo_of_another_size_is_one_line(photos, fitted, tmp_path, capsys):
+    """The fitted camera is for the fitted photo's size: another size is refused, naming both sizes and the photo."""
+    _refused(["evaluate", fitted, photos / "sizes" / "b.jpg", "--time", T1, "--location", LOC], capsys, tmp_path,
+             "the camera (a photo fit's)", "96x112 px images", "b.jpg is 80x112 px")
+
+
 def test_photo_flags_need_time_and_location(photos, tmp_path, capsys):
     _refused(["fit", photos / "sky.jpg", "--location", LOC, "--out", tmp_path / "r.json"], capsys, tmp_path,
              "sky.jpg", "--time")

@@ -195,13 +195,17 @@ def read_camera(path: str | Path) -> dict:
     return data
 
 
-def camera_from_dict(meta: dict, shape: tuple[int, int]) -> FisheyeCamera:
-    """A :class:`FisheyeCamera` of a camera file's dict for a photo of ``shape`` (H, W)."""
+def camera_from_dict(meta: dict, shape: tuple[int, int], photo: str | None = None) -> FisheyeCamera:
+    """A :class:`FisheyeCamera` of a camera file's dict (or a photo fit's RESULT.json ``camera``) for a photo of
+    ``shape`` (H, W); ``photo`` names it in the error of a camera made for another size."""
     m = {k: v for k, v in meta.items() if k in CAMERA_KEYS}
     h, w = shape
     size = m.get("size")
     if size is not None and tuple(np.atleast_1d(size).tolist()) not in ((h, w), (w,) if h == w else ()):
-        raise PhotoFitError(f"camera file {meta.get('_source', '')}: made for images of size {size}, the photo is {h}x{w}")
+        hw = "x".join(str(int(v)) for v in (np.atleast_1d(size).tolist() * 2)[:2])
+        what = f"camera file {meta['_source']}" if meta.get("_source") else "the camera (a photo fit's)"
+        raise PhotoFitError(f"{what}: made for {hw} px images, the photo{' ' + str(photo) if photo else ''} is {h}x{w} px "
+                            "(a camera is for one image size)")
     m["size"] = [h, w] if h != w else h
     try:
         return FisheyeCamera.from_metadata(m)
@@ -293,7 +297,7 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
         else:
             if isinstance(camera, (str, Path)):
                 camera = read_camera(camera)
-            cam = camera if isinstance(camera, FisheyeCamera) else camera_from_dict(camera, (H, W))
+            cam = camera if isinstance(camera, FisheyeCamera) else camera_from_dict(camera, (H, W), src)
             if tuple(cam.shape) != (H, W):
                 raise PhotoFitError(f"photo {src}: the camera is for {cam.height}x{cam.width} images, the photo is {H}x{W}")
             if scale > 1:
