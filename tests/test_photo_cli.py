@@ -555,3 +555,34 @@ def test_reduced_photo_keeps_means_and_bounds():
     assert r.valid.tolist() == [[True, False], [True, True]]
     assert r.darkest_saturated.tolist() == [[True, False], [False, True]]
     assert reduced_photo(ph, 1) is ph
+
+
+def test_a_cloudy_sky_and_a_misplaced_sun_are_noted(photos, fitted, tmp_path, capsys, monkeypatch):
+    """White discs over a fifth of the sky (clouds, away from the sun) are outliers of the first fit; the second
+    pass masks over OUTLIER_NOTE_FRACTION of the sky it used and the result says so. The clear sky's fit
+    (``fitted``, 13 % masked) has neither that note nor the sun's (0.5 deg from its detection, under SUN_NOTE_DEG);
+    with SUN_NOTE_DEG below the separation the sun's note names it."""
+    clear = json.loads(fitted.read_text())
+    assert not [n for n in clear["notes"] if "second pass masked" in n or "puts the sun" in n], clear["notes"]
+    lin = linear_sky(T1)
+    yy, xx = np.mgrid[:SHAPE[0], :SHAPE[1]]
+    rng = np.random.default_rng(0)
+    cloud = np.zeros(SHAPE, bool)
+    for _ in range(30):
+        a, r = rng.uniform(0, 2 * math.pi), rng.uniform(0, 0.75) * CAM["radius"]
+        cloud |= np.hypot(xx - CAM["cx"] - r * math.cos(a), yy - CAM["cy"] - r * math.sin(a)) < rng.uniform(4, 9)
+    sky, sun = lin.sum(-1) > 0, lin.max(-1) > 0.99
+    cloud &= sky & (np.hypot(xx - xx[sun].mean(), yy - yy[sun].mean()) >= 25)
+    assert 0.15 < cloud.sum() / sky.sum() < 0.25
+    white = 1.2 * float(np.median(lin[sky], 0).mean())
+    Image.fromarray(codes8(np.where(cloud[..., None], white, lin))).save(tmp_path / "cloudy.jpg", quality=95)
+    monkeypatch.setattr(fit_photo_module, "SUN_NOTE_DEG", 0.1)
+    rc, so, se = run(_fit_argv(tmp_path / "cloudy.jpg", tmp_path / "r.json", photos / "cheap.yaml", T1, "--no-plots"), capsys)
+    assert rc == 0, se
+    r = json.loads((tmp_path / "r.json").read_text())
+    masked = [n for n in r["notes"] if "second pass masked" in n]
+    px = r["pixels"]
+    assert len(masked) == 1 and px["masked_by"]["outliers"] > fit_photo_module.OUTLIER_NOTE_FRACTION * px["used"], r["notes"]
+    assert "note: the second pass masked" in so + se
+    sep = [n for n in r["notes"] if "puts the sun" in n]
+    assert len(sep) == 1 and f"{r['sun']['separation_deg']:.1f} deg" in sep[0]
