@@ -108,8 +108,8 @@ would throw away what measures the aerosol best. [deg]"""
 OUTLIER_NOTE_FRACTION = 0.2
 """When the second pass masks more than this share of the sky the first fit used as outliers, the result says so in
 a note: the rest carries the fit, and so much misfit is more than a missed obstacle (clouds, a camera the first fit
-got wrong). On synthetic cases 2 and 4 with clouds over 15 % of their sky (docs/photos.md, "Clouds") the mask took 13 and 15 %;
-with 30 %, and a cloud over the sun's aureole, 65 %. [1]"""
+got wrong). Synthetic cases 2 and 4 with clouds over 15 % of their sky (docs/photos.md, "Clouds") stay under it (13 and
+15 % of the used blocks); case 2 with clouds over 30 % of it, one on the sun's aureole, masked 47 %. [1]"""
 SUN_NOTE_DEG = 2.0
 """When the fitted camera puts the sun further than this from its detection, the result says so in a note: twice
 what the synthetic photos are asked (the sun within 1 deg), met on all 20 of them (docs/photos.md). [deg]"""
