@@ -89,6 +89,7 @@ def score(truth: dict, result: dict) -> dict:
         "gains_fit": [cam.get("gain_red"), cam.get("gain_blue")], "saturation_fit": [cam.get("saturation_red"), cam.get("saturation_blue")],
         "ms": {k: result.get("convergence", {}).get(k) for k in ("ms_refreshes", "ms_table_builds", "ms_factor_change")},
         "notes": result["notes"],
+        "pixels_used": result["pixels"]["used"], "pixels_outliers": result["pixels"]["masked_by"].get("outliers", 0),
     }
 
 

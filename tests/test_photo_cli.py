@@ -228,7 +228,7 @@ def _refused(argv, capsys, folder: Path, *needles: str) -> str:
 BAD_FITS = {
     # case: (photo, time, extra flags, words the one line must hold)
     "unreadable image": ("garbage.jpg", T1, [], ["garbage.jpg", "cannot read the image"]),
-    "no lens circle": ("fullframe.jpg", T1, [], ["fullframe.jpg", "no fisheye circle found"]),
+    "no lens circle": ("fullframe.jpg", T1, [], ["fullframe.jpg", "no fisheye circle found", "--camera CAMERA.yaml"]),
     "time without UTC offset": ("sky.jpg", "2024-06-01T10:00:00", [], ["--time", "2024-06-01T10:00:00", "offset"]),
     "sun below the horizon": ("sky.jpg", NIGHT, [], ["sky.jpg", "sun is below the horizon"]),
     "bracket of different sizes": ("sizes", T1, [], ["sizes", "differ in size"]),

@@ -320,7 +320,9 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
             notes.append("the sun is not seen in the photo (hidden or outside the view): the heading comes from the sky pattern")
         masks = scene_masks(photo, cam, detected, sz, sa, mask, sun_mask_max_deg)
     except CalibrationError as e:
-        raise PhotoFitError(f"photo {src}: {e}") from None
+        hint = ("; a lens whose image fills the frame has no circle to find: give it with --camera CAMERA.yaml "
+                "(docs/photos.md)" if camera is None and "no fisheye circle found" in str(e) else "")
+        raise PhotoFitError(f"photo {src}: {e}{hint}") from None
     if not bool((~_union(masks)).any()):
         raise PhotoFitError(f"photo {src}: no sky pixel left (the lens circle, horizon, sun and masks cover everything)")
     return PhotoScene(photo, sz, sa, float(sp.distance_au), when.isoformat(),
