@@ -586,3 +586,60 @@ def test_a_cloudy_sky_and_a_misplaced_sun_are_noted(photos, fitted, tmp_path, ca
     assert "note: the second pass masked" in so + se
     sep = [n for n in r["notes"] if "puts the sun" in n]
     assert len(sep) == 1 and f"{r['sun']['separation_deg']:.1f} deg" in sep[0]
+
+
+def _srgb_cmf_csv(path: Path) -> None:
+    """The CIE 1931 observer through linear sRGB's matrix (IEC 61966-2-1: XYZ -> RGB), on its 1 nm table: curves with
+    negative lobes, which render exactly what skyfit's default colour path renders."""
+    import colour
+
+    cmf = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
+    m = np.array([[3.2406, -1.5372, -0.4986], [-0.9689, 1.8758, 0.0415], [0.0557, -0.2040, 1.0570]])
+    rgb = 683.0 * cmf.values @ m.T
+    np.savetxt(path, np.column_stack([cmf.wavelengths, rgb]), delimiter=",", header="wavelength_nm,R,G,B", comments="")
+
+
+def test_sensitivities_with_negative_lobes_render_as_the_cie_path():
+    """Curves of an output through its colour matrix dip below 0: accepted, and the observer's own through sRGB's
+    matrix give the default CIE -> linear sRGB channel matrix to 1e-3 (the matrices' rounding)."""
+    import tempfile
+
+    from types import SimpleNamespace
+
+    from skyfit.fit.model import channel_matrix
+    from skyfit.fit.photo import read_sensitivities
+
+    with tempfile.TemporaryDirectory() as d:
+        _srgb_cmf_csv(Path(d) / "s.csv")
+        wl, sens = read_sensitivities(Path(d) / "s.csv")
+    assert (sens < 0).any()
+    lam = torch.linspace(380.0, 760.0, 20, dtype=torch.float64)
+    obs = SimpleNamespace(kind="rgb", metadata={})  # what channel_matrix reads of an Observation
+    cie = channel_matrix(lam, obs)
+    obs.metadata["response"] = (wl, sens)
+    own = channel_matrix(lam, obs)
+    torch.testing.assert_close(own, cie, rtol=1e-3, atol=1e-3 * float(cie.abs().max()))
+
+
+def test_a_camera_file_of_colour_only_keeps_the_lens_from_the_image(photos, tmp_path, capsys):
+    """CAMERA.yaml with spectral sensitivities and no projection: the lens circle, projection and heading come from
+    the image (the truth :data:`CAM` within the tolerances of :func:`check_photo_result`), the result says so, the
+    saturations stay at 1 (the curves render the colour); a file whose channel does not respond to white light is
+    refused in one line."""
+    _srgb_cmf_csv(tmp_path / "s.csv")
+    (tmp_path / "colour.yaml").write_text("spectral_sensitivities: s.csv\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    rc, so, se = run(_fit_argv(photos / "sky.jpg", out / "r.json", photos / "cheap.yaml", T1, "--camera", tmp_path / "colour.yaml"),
+                     capsys)
+    assert rc == 0, se
+    r = check_photo_result(out, "sky.jpg")
+    assert any("gives no lens (no projection)" in n for n in r["notes"])
+    assert r["camera"]["source"].startswith("estimated") and r["camera"]["projection_evidence"]
+    assert r["camera"]["saturation_red"] == 1.0 and r["camera"]["saturation_blue"] == 1.0
+    np.savetxt(tmp_path / "bad.csv", [[400, 1, 1, -1], [500, 1, 1, -1], [600, 1, 1, -1]], delimiter=",")
+    (tmp_path / "bad.yaml").write_text("spectral_sensitivities: bad.csv\n")
+    bad = tmp_path / "bad_out"
+    bad.mkdir()
+    _refused(_fit_argv(photos / "sky.jpg", bad / "r.json", photos / "cheap.yaml", T1, "--camera", tmp_path / "bad.yaml"),
+             capsys, bad, "bad.csv", "integral over wavelength must be > 0")

@@ -181,7 +181,10 @@ def read_camera(path: str | Path) -> dict:
     Keys: ``projection``, ``cx``, ``cy``, ``radius_px`` (classical) or ``focal_px`` + ``kb_coeffs``
     (kannala_brandt), optional ``up_azimuth_deg``, ``tilt_deg`` [deg], ``max_zenith_deg``, ``vignetting``
     (v of 1 + v r^2), ``gain_red``/``gain_blue``, ``saturation_red``/``saturation_blue``, and ``spectral_sensitivities`` (a CSV of wavelength [nm],
-    R, G, B, relative to this file). ``size`` may be left out: the photo's is used.
+    R, G, B, relative to this file). ``size`` may be left out: the photo's is used. Without ``projection`` the file
+    gives the camera's colour only (sensitivities, gains, saturations, vignetting) and the lens comes from the image
+    (:func:`prepare_scene`). With ``spectral_sensitivities`` the saturations are 1 unless the file gives them: the
+    curves render the camera's colour (those of its output, matrix and white balance included, where it is not raw).
     """
     import yaml
 
@@ -232,8 +235,12 @@ def read_sensitivities(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         raise PhotoFitError(f"spectral sensitivities {p}: cannot read: {e}") from None
     if arr.ndim != 2 or arr.shape[1] != 4 or arr.shape[0] < 3 or not np.isfinite(arr).all():
         raise PhotoFitError(f"spectral sensitivities {p}: need rows 'wavelength_nm,R,G,B' (>= 3 rows, finite)")
-    if not np.all(np.diff(arr[:, 0]) > 0) or (arr[:, 1:] < 0).any():
-        raise PhotoFitError(f"spectral sensitivities {p}: wavelengths must increase and sensitivities be >= 0")
+    if not np.all(np.diff(arr[:, 0]) > 0):
+        raise PhotoFitError(f"spectral sensitivities {p}: wavelengths must increase")
+    # an output's curves (a camera's sensitivities through its colour matrix, as the CIE observer's through sRGB's)
+    # may dip below 0; each channel must still respond to white light
+    if not (np.trapezoid(arr[:, 1:], arr[:, 0], axis=0) > 0).all():
+        raise PhotoFitError(f"spectral sensitivities {p}: each channel's integral over wavelength must be > 0")
     return arr[:, 0], arr[:, 1:]
 
 
@@ -297,14 +304,18 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
     t1 = _now()
     candidates, circle, detected = [], None, None
     inside_valid = photo.valid
+    if isinstance(camera, (str, Path)):
+        camera = read_camera(camera)
+    if isinstance(camera, dict) and camera.get("projection") is None:  # a file of the camera's colour only
+        notes.append(f"camera file {camera.get('_source', '')} gives no lens (no projection): the lens circle, projection "
+                     "and heading from the image")
+        camera = None
     try:
         if camera is None:
             circle, detected, candidates = cameras_from_image(photo, sz, sa, projections)
             cam = candidates[0].camera
             notes.extend(candidates[0].notes)
         else:
-            if isinstance(camera, (str, Path)):
-                camera = read_camera(camera)
             cam = camera if isinstance(camera, FisheyeCamera) else camera_from_dict(camera, (H, W), src)
             if tuple(cam.shape) != (H, W):
                 raise PhotoFitError(f"photo {src}: the camera is for {cam.height}x{cam.width} images, the photo is {H}x{W}")
@@ -866,6 +877,8 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     calibrated = not scene.candidates
     s = photo_settings(config, overrides, calibrated)
     fixed = _fixed_camera_values(camera_meta)
+    if camera_meta and camera_meta.get("spectral_sensitivities"):  # they render the camera's colour: no saturation
+        fixed = {"saturation_red": 1.0, "saturation_blue": 1.0, **fixed}
     free = [n for n in s.free if n not in fixed]
     # the Rayleigh optical depth of a site follows its surface pressure, exp(-elevation / 8434 m)
     site = {"rayleigh_scale": math.exp(-float(scene.location.get("elevation_m", 0.0)) / PRESSURE_SCALE_HEIGHT_M)}
