@@ -643,3 +643,6 @@ def test_a_camera_file_of_colour_only_keeps_the_lens_from_the_image(photos, tmp_
     bad.mkdir()
     _refused(_fit_argv(photos / "sky.jpg", bad / "r.json", photos / "cheap.yaml", T1, "--camera", tmp_path / "bad.yaml"),
              capsys, bad, "bad.csv", "integral over wavelength must be > 0")
+    (tmp_path / "missing.yaml").write_text("spectral_sensitivities: nothere.csv\n")
+    _refused(_fit_argv(photos / "sky.jpg", bad / "r.json", photos / "cheap.yaml", T1, "--camera", tmp_path / "missing.yaml"),
+             capsys, bad, "nothere.csv", "not found")

@@ -202,6 +202,7 @@ def read_camera(path: str | Path) -> dict:
         raise PhotoFitError(f"camera file {p}: unknown key(s) {', '.join(unknown)}; valid: {', '.join(CAMERA_KEYS)}")
     if "spectral_sensitivities" in data and data["spectral_sensitivities"] is not None:
         data["spectral_sensitivities"] = str((p.parent / str(data["spectral_sensitivities"])).resolve())
+        read_sensitivities(data["spectral_sensitivities"])  # a bad curves file is refused before any work
     data["_source"] = str(p)
     return data
 
