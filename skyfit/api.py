@@ -349,8 +349,10 @@ class PhotoResult(FitResult):
     """A photo fit (:func:`fit_photo`): a :class:`FitResult` with the photo's camera, sun and aerosol.
 
     Attributes (besides FitResult's):
-        camera: the fitted :class:`~skyfit.camera.FisheyeCamera` (projection, centre, radius, heading, tilt).
-        photo_fit: the whole :class:`skyfit.fit.photo.PhotoFit` (scene, masks, blocks, model image).
+        camera: the fitted :class:`~skyfit.camera.FisheyeCamera` (projection, centre, radius, heading, tilt), in the
+            photo's own pixels also where a large photo was fitted reduced (``result["photo"]["reduced"]``).
+        photo_fit: the whole :class:`skyfit.fit.photo.PhotoFit` (scene, masks, blocks, model image; its scene, masks
+            and blocks at the fitted size, ``photo_fit.scene.scale`` photo pixels per pixel).
     """
 
     camera: FisheyeCamera | None = None
