@@ -646,3 +646,34 @@ def test_a_camera_file_of_colour_only_keeps_the_lens_from_the_image(photos, tmp_
     (tmp_path / "missing.yaml").write_text("spectral_sensitivities: nothere.csv\n")
     _refused(_fit_argv(photos / "sky.jpg", bad / "r.json", photos / "cheap.yaml", T1, "--camera", tmp_path / "missing.yaml"),
              capsys, bad, "nothere.csv", "not found")
+
+
+def test_a_mirrored_camera_is_fitted_flipped_and_carries_to_another_hour(photos, tmp_path, capsys):
+    """The test skies at T1 and T2 flipped left-right (a camera that sees the sky in a convex mirror). One photo fits
+    as well either way (a clear sky is symmetric about the sun's vertical), but only a camera file's ``mirror: true``
+    makes the fitted camera :data:`CAM` itself (in the flipped image's pixels) and carries it to the other hour:
+    the sun within 8 deg there, as for the unmirrored photos; without it the mirrored camera puts the other hour's
+    sun over 20 deg off."""
+    for t, name in ((T1, "m1.jpg"), (T2, "m2.jpg")):
+        Image.fromarray(np.ascontiguousarray(codes8(linear_sky(t))[:, ::-1])).save(tmp_path / name, quality=95)
+    (tmp_path / "mirror.yaml").write_text("mirror: true\n")
+    seps = {}
+    for label, extra in (("mirror", ["--camera", tmp_path / "mirror.yaml"]), ("plain", [])):
+        out = tmp_path / label
+        out.mkdir()
+        rc, so, se = run(_fit_argv(tmp_path / "m1.jpg", out / "r.json", photos / "cheap.yaml", T1, "--no-plots", *extra), capsys)
+        assert rc == 0, se
+        r = json.loads((out / "r.json").read_text())
+        rc, so, se = run(["evaluate", out / "r.json", tmp_path / "m2.jpg", "--time", T2, "--location", LOC, "--json"], capsys)
+        assert rc == 0, se
+        seps[label] = json.loads(so)["sun"]["separation_deg"]
+        if label == "mirror":
+            cam = r["camera"]
+            assert cam["mirror"] is True and r["photo"]["mirrored"] is True
+            assert any("the camera is mirrored" in n for n in r["notes"])
+            assert abs(cam["cx"] - CAM["cx"]) < 1.0 and abs(cam["cy"] - CAM["cy"]) < 1.0
+            assert abs((cam["up_azimuth_deg"] - CAM["up_azimuth_deg"] + 180) % 360 - 180) < 8.0
+    assert seps["mirror"] < 8.0 and seps["plain"] > 20.0, seps
+    (tmp_path / "bad.yaml").write_text("mirror: yes please\n")
+    _refused(_fit_argv(tmp_path / "m1.jpg", tmp_path / "mirror" / "r2.json", photos / "cheap.yaml", T1, "--camera",
+                       tmp_path / "bad.yaml"), capsys, tmp_path / "mirror", "bad.yaml", "mirror must be true or false")

@@ -155,6 +155,8 @@ class PhotoScene:
     seconds: dict
     scale: int = 1
     """Pixels of the photo as read per pixel of ``photo`` (:data:`PHOTO_MAX_SIDE`; 1: fitted at full size)."""
+    mirror: bool = False
+    """The photo was flipped left-right before anything else (a camera file's ``mirror: true``)."""
 
     @property
     def excluded(self) -> np.ndarray:
@@ -168,7 +170,7 @@ class PhotoScene:
 # -- camera files --------------------------------------------------------------------------------
 CAMERA_KEYS = ("projection", "size", "width", "height", "cx", "cy", "radius_px", "focal_px", "kb_coeffs", "up_azimuth_deg",
                "tilt_deg", "max_zenith_deg", "vignetting", "gain_red", "gain_blue", "saturation_red",
-               "saturation_blue", "spectral_sensitivities")
+               "saturation_blue", "spectral_sensitivities", "mirror")
 CAMERA_INFO_KEYS = ("convention", "rotation", "model", "tilt_zenith_deg", "tilt_azimuth_deg", "source", "photos",
                     "nominal_projection", "lens_radial")
 """Keys a camera file may carry for the reader's information (the camera is the CAMERA_KEYS'; ``nominal_projection``
@@ -181,7 +183,9 @@ def read_camera(path: str | Path) -> dict:
     Keys: ``projection``, ``cx``, ``cy``, ``radius_px`` (classical) or ``focal_px`` + ``kb_coeffs``
     (kannala_brandt), optional ``up_azimuth_deg``, ``tilt_deg`` [deg], ``max_zenith_deg``, ``vignetting``
     (v of 1 + v r^2), ``gain_red``/``gain_blue``, ``saturation_red``/``saturation_blue``, and ``spectral_sensitivities`` (a CSV of wavelength [nm],
-    R, G, B, relative to this file). ``size`` may be left out: the photo's is used. Without ``projection`` the file
+    R, G, B, relative to this file). ``size`` may be left out: the photo's is used. ``mirror: true``: the camera sees
+    the sky mirrored (through a convex mirror, or an image flipped East-right); its photos are flipped left-right
+    before anything else, and every pixel value of the file and of RESULT.json is of the flipped image. Without ``projection`` the file
     gives the camera's colour only (sensitivities, gains, saturations, vignetting) and the lens comes from the image
     (:func:`prepare_scene`). With ``spectral_sensitivities`` the saturations are 1 unless the file gives them: the
     curves render the camera's colour (those of its output, matrix and white balance included, where it is not raw).
@@ -203,6 +207,8 @@ def read_camera(path: str | Path) -> dict:
     if "spectral_sensitivities" in data and data["spectral_sensitivities"] is not None:
         data["spectral_sensitivities"] = str((p.parent / str(data["spectral_sensitivities"])).resolve())
         read_sensitivities(data["spectral_sensitivities"])  # a bad curves file is refused before any work
+    if not isinstance(data.get("mirror", False), bool):
+        raise PhotoFitError(f"camera file {p}: mirror must be true or false, got {data['mirror']!r}")
     data["_source"] = str(p)
     return data
 
@@ -210,7 +216,7 @@ def read_camera(path: str | Path) -> dict:
 def camera_from_dict(meta: dict, shape: tuple[int, int], photo: str | None = None) -> FisheyeCamera:
     """A :class:`FisheyeCamera` of a camera file's dict (or a photo fit's RESULT.json ``camera``) for a photo of
     ``shape`` (H, W); ``photo`` names it in the error of a camera made for another size."""
-    m = {k: v for k, v in meta.items() if k in CAMERA_KEYS}
+    m = {k: v for k, v in meta.items() if k in CAMERA_KEYS and k != "mirror"}
     h, w = shape
     size = m.get("size")
     if size is not None and tuple(np.atleast_1d(size).tolist()) not in ((h, w), (w,) if h == w else ()):
@@ -280,6 +286,12 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
         mask = np.asarray(mask, bool)
         if mask.shape != (H, W):
             raise PhotoFitError(f"photo {src}: the mask is {mask.shape[0]}x{mask.shape[1]}, the photo {H}x{W}")
+    if isinstance(camera, (str, Path)):
+        camera = read_camera(camera)
+    mirror = isinstance(camera, dict) and bool(camera.get("mirror"))
+    if mirror:  # a mirrored view of the sky: flipped left-right it is a camera's looking up
+        photo = mirrored_photo(photo)
+        mask = None if mask is None else mask[:, ::-1].copy()
     if scale > 1:
         photo = reduced_photo(photo, scale)
         h, w = photo.rgb.shape[:2]
@@ -305,8 +317,9 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
     t1 = _now()
     candidates, circle, detected = [], None, None
     inside_valid = photo.valid
-    if isinstance(camera, (str, Path)):
-        camera = read_camera(camera)
+    if mirror:
+        notes.append("the camera is mirrored (its file's mirror: true): the photo is fitted flipped left-right, and "
+                     "RESULT.json's pixel positions are of the flipped photo")
     if isinstance(camera, dict) and camera.get("projection") is None:  # a file of the camera's colour only
         notes.append(f"camera file {camera.get('_source', '')} gives no lens (no projection): the lens circle, projection "
                      "and heading from the image")
@@ -339,7 +352,7 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
         raise PhotoFitError(f"photo {src}: no sky pixel left (the lens circle, horizon, sun and masks cover everything)")
     return PhotoScene(photo, sz, sa, float(sp.distance_au), when.isoformat(),
                       {"latitude_deg": float(lat), "longitude_deg": float(lon), "elevation_m": float(elev)},
-                      cam, candidates, detected, circle, masks, notes, seconds, scale)
+                      cam, candidates, detected, circle, masks, notes, seconds, scale, mirror)
 
 
 PHOTO_MAX_SIDE = 1200
@@ -349,6 +362,15 @@ PHOTO_MAX_SIDE = 1200
 RANSAC thresholds, the obstacles' texture window and morphology) were set on photos of 120-800 px; at full size a
 3000 x 3000 photo took 5.3 GB and 78 s against 47 s for the same sky at 600 px, its masks alone 23 s
 (docs/photos.md, "Large photos"). [px]"""
+
+
+def mirrored_photo(photo: LinearPhoto) -> LinearPhoto:
+    """``photo`` flipped left-right (every per-pixel field); ``meta["mirrored"]`` True."""
+    flip = lambda a: np.ascontiguousarray(a[:, ::-1])  # noqa: E731
+    return dataclasses.replace(photo, rgb=flip(photo.rgb), variance=flip(photo.variance),
+                               censored_high=flip(photo.censored_high), censored_low=flip(photo.censored_low),
+                               valid=flip(photo.valid), darkest=flip(photo.darkest),
+                               darkest_saturated=flip(photo.darkest_saturated), meta={**photo.meta, "mirrored": True})
 
 
 def reduction_factor(shape: tuple[int, int], max_side: int | None = None) -> int:
@@ -1673,6 +1695,8 @@ def photo_result(scene: PhotoScene, blocks: BlockImage, prep, problem, res, conf
         cam_meta.update(nominal_projection=scene.camera.projection, lens_radial=vals["lens_radial"])
     if scene.circle is not None:
         cam_meta["circle"] = dataclasses.asdict(scene.circle)
+    if scene.mirror:
+        cam_meta["mirror"] = True
     if scene.candidates:
         cam_meta["projection_evidence"] = [{"projection": c.projection, "sun_radius_error_deg": c.score,
                                             "tolerance_deg": c.tolerance_deg} for c in scene.candidates]
