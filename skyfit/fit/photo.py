@@ -49,7 +49,7 @@ from ..camera.autocal import (SRGB_LUMA, CalibrationError, CameraGuess, Circle, 
 from ..camera.fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, theta_to_rho, zenith_azimuth_to_enu
 from ..camera.masks import SUN_MASK_MAX_DEG, grow_outlier_mask, obstacle_mask, sun_mask
 from ..camera.sun import parse_location, parse_time, sun_position
-from ..io.photo import LinearPhoto, read_photo, reduced_photo
+from ..io.photo import LinearPhoto, block_view, read_photo, reduced_photo
 from .data import Observation
 from .model import FitProblem, aerosol_log_depth, applied_lens, lens_directions, tilt_directions
 from .optimise import fit as optimise
@@ -296,9 +296,8 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
         photo = reduced_photo(photo, scale)
         h, w = photo.rgb.shape[:2]
         if mask is not None:  # a block is ignored where any of its pixels is
-            mask = mask[: h * scale, : w * scale].reshape(h, scale, w, scale).any((1, 3))
-        photo.meta.setdefault("notes", [])
-        photo.meta["notes"] = list(photo.meta["notes"]) + [
+            mask = block_view(mask, scale, h, w).any(2)
+        photo.meta["notes"] = list(photo.meta.get("notes", [])) + [
             f"the {H}x{W} px photo is fitted at 1/{scale} of its size ({h}x{w} px of {scale}x{scale} px means; "
             f"skyfit.fit.photo.PHOTO_MAX_SIDE {PHOTO_MAX_SIDE}); RESULT.json's pixel positions are the photo's own"]
     seconds["read"] = _now() - t0
@@ -478,6 +477,12 @@ def scaled_camera(cam: FisheyeCamera, step: int, shape: tuple[int, int]) -> Fish
     return FisheyeCamera.from_metadata(rescaled_camera_meta(cam.to_metadata(), 1.0 / step, shape))
 
 
+def pixel_at(x: float, scale: float) -> float:
+    """Pixel coordinate ``x`` of an image in one with ``scale`` of its pixels per pixel, pixel centres kept:
+    scale (x + 1/2) - 1/2 (1/step for blocks of step pixels, k for the photo of one reduced by k). [px]"""
+    return scale * (float(x) + 0.5) - 0.5
+
+
 def rescaled_camera_meta(meta: dict, scale: float, shape: tuple[int, int]) -> dict:
     """A camera's metadata (:meth:`FisheyeCamera.to_metadata`, or a photo fit's RESULT.json ``camera``, with its
     ``circle``) for an image of ``shape`` (H, W) with ``scale`` of its pixels per pixel: x -> scale (x + 1/2) - 1/2
@@ -485,23 +490,16 @@ def rescaled_camera_meta(meta: dict, scale: float, shape: tuple[int, int]) -> di
     one), lengths times ``scale``."""
     out = dict(meta)
     h, w = shape
-    at = lambda v: scale * (float(v) + 0.5) - 0.5  # noqa: E731
-    out.update(size=[h, w] if h != w else h, width=w, height=h, cx=at(meta["cx"]), cy=at(meta["cy"]))
+    out.update(size=[h, w] if h != w else h, width=w, height=h, cx=pixel_at(meta["cx"], scale), cy=pixel_at(meta["cy"], scale))
     for k in ("radius_px", "focal_px"):
         if meta.get(k) is not None:
             out[k] = scale * float(meta[k])
     if isinstance(meta.get("circle"), dict):
         c = dict(meta["circle"])
-        c.update(cx=at(c["cx"]), cy=at(c["cy"]), radius=scale * float(c["radius"]), residual_px=scale * float(c["residual_px"]))
+        c.update(cx=pixel_at(c["cx"], scale), cy=pixel_at(c["cy"], scale), radius=scale * float(c["radius"]),
+                 residual_px=scale * float(c["residual_px"]))
         out["circle"] = c
     return out
-
-
-def _blocks(a: np.ndarray, step: int, h: int, w: int) -> np.ndarray:
-    """(h, w, step*step, ...) view of the top-left h*step x w*step pixels of ``a`` grouped in blocks."""
-    a = a[: h * step, : w * step]
-    rest = a.shape[2:]
-    return a.reshape(h, step, w, step, *rest).swapaxes(1, 2).reshape(h, w, step * step, *rest)
 
 
 def block_image(scene: PhotoScene, step: int | None = None, exclude: np.ndarray | None = None,
@@ -519,15 +517,15 @@ def block_image(scene: PhotoScene, step: int | None = None, exclude: np.ndarray 
     sky_px = ~excluded
     cand_px = inside & ~scene.masks["horizon"] & ~scene.masks["sun"]
     rgb = np.where(np.isfinite(ph.rgb), ph.rgb, 0.0)
-    hi = _blocks(ph.censored_high, step, h, w)
-    lo = _blocks(ph.censored_low, step, h, w)
+    hi = block_view(ph.censored_high, step, h, w)
+    lo = block_view(ph.censored_low, step, h, w)
     any_cens = (hi | lo).any(-1)  # (h, w, n) pixel censored in some channel
-    sky = _blocks(sky_px, step, h, w).all(-1)
-    cand = _blocks(cand_px, step, h, w).all(-1)
+    sky = block_view(sky_px, step, h, w).all(-1)
+    cand = block_view(cand_px, step, h, w).all(-1)
     usable = sky & ~any_cens.any(-1)
-    vals = _blocks(rgb, step, h, w).mean(2)
+    vals = block_view(rgb, step, h, w).mean(2)
     var = np.where(np.isfinite(ph.variance), ph.variance, 0.0)
-    bvar = _blocks(var, step, h, w).sum(2) / float(step * step) ** 2
+    bvar = block_view(var, step, h, w).sum(2) / float(step * step) ** 2
     cens = np.zeros((h, w, 3), np.int8)
     # a channel with saturated pixels is a lower bound on the block's mean (its clipped pixels hold the clip level,
     # below their truth); one all black an upper bound; the ring of partly saturated blocks around a saturated
@@ -1738,8 +1736,8 @@ def _in_photo_pixels(result: dict, scale: int) -> dict:
     says by what. Unchanged for ``scale`` 1."""
     if scale == 1:
         return result
-    at = lambda p: None if p is None else [scale * (float(v) + 0.5) - 0.5 for v in p]  # noqa: E731
-    shape = result["photo"].get("reduced", {}).get("original_shape") or [scale * v for v in result["photo"]["shape"]]
+    at = lambda p: None if p is None else [pixel_at(v, scale) for v in p]  # noqa: E731
+    shape = result["photo"]["reduced"]["original_shape"]
     result["camera"] = rescaled_camera_meta(result["camera"], float(scale), tuple(shape))
     sun = result["sun"]
     sun.update(model_px=at(sun["model_px"]), detected_px=at(sun["detected_px"]), centroid_px=at(sun.get("centroid_px")))
@@ -1804,7 +1802,7 @@ def report_png(pf: PhotoFit, path: str | Path) -> Path:
     ax[3].set_title("used (green), censored (red), masked (blue)")
     sun = pf.result["sun"]
     per = b.step * pf.scene.scale  # pixels of the photo as read per block
-    on = lambda p: ([(p[0] + 0.5) / per - 0.5], [(p[1] + 0.5) / per - 0.5])  # noqa: E731
+    on = lambda p: ([pixel_at(p[0], 1.0 / per)], [pixel_at(p[1], 1.0 / per)])  # noqa: E731
     for a in ax:
         a.set_axis_off()
         a.plot(*on(sun["model_px"]), "y+", ms=12)

@@ -698,8 +698,8 @@ def _block_log_ratios(a: _Frame, b: _Frame, ra: _Response, rb: _Response, lo: fl
     ok = wa[a.codes] & wb[b.codes] & ~a.low & ~b.low & (a.valid & b.valid & ~clipped)[..., None]
     d = np.where(ok, _lookup(lb, b.codes) - _lookup(la, a.codes), np.nan)
     k = SCENE_BLOCK
-    h, w = (d.shape[0] // k) * k, (d.shape[1] // k) * k
-    blocks = d[:h, :w].reshape(h // k, k, w // k, k, 3).swapaxes(1, 2).reshape(h // k, w // k, -1)
+    nh, nw = d.shape[0] // k, d.shape[1] // k
+    blocks = block_view(d, k, nh, nw).reshape(nh, nw, -1)
     enough = np.isfinite(blocks).sum(-1) >= (k * k * 3) // 4
     if not enough.any():
         return np.empty(0)
@@ -1167,6 +1167,13 @@ def read_photo(path, *, linear: bool = False, exposures: Sequence[float] | None 
     return _read_single(p, kind, linear, exposures, response)
 
 
+def block_view(a: np.ndarray, step: int, h: int, w: int) -> np.ndarray:
+    """(h, w, step * step, ...) view of the top-left h step x w step pixels of ``a`` (H, W, ...) grouped in blocks of
+    step x step pixels: block sums, means and flags by reducing axis 2."""
+    a = a[: h * step, : w * step]
+    return a.reshape(h, step, w, step, *a.shape[2:]).swapaxes(1, 2).reshape(h, w, step * step, *a.shape[2:])
+
+
 def reduced_photo(photo: LinearPhoto, factor: int) -> LinearPhoto:
     """``photo`` at 1 / ``factor`` of its resolution: block means of ``factor`` x ``factor`` pixels (the ragged right
     and bottom edges dropped), each a pixel of the result (pixel (i, j) of it centred at pixel (i f + (f - 1) / 2,
@@ -1186,10 +1193,7 @@ def reduced_photo(photo: LinearPhoto, factor: int) -> LinearPhoto:
     h, w = H // f, W // f
     if h < 1 or w < 1:
         raise PhotoError(f"{photo.source}: {H}x{W} px cannot be reduced by {f}")
-
-    def blocks(a: np.ndarray) -> np.ndarray:  # (h, w, f * f, ...)
-        a = a[: h * f, : w * f]
-        return a.reshape(h, f, w, f, *a.shape[2:]).swapaxes(1, 2).reshape(h, w, f * f, *a.shape[2:])
+    blocks = lambda a: block_view(a, f, h, w)  # noqa: E731
 
     with np.errstate(invalid="ignore"):
         finite = np.isfinite(photo.rgb)
@@ -1250,6 +1254,7 @@ __all__ = [
     "RAW_EXTENSIONS",
     "LinearPhoto",
     "PhotoError",
+    "block_view",
     "is_photo_path",
     "read_photo",
     "reduced_photo",
