@@ -19,6 +19,7 @@ import json
 import shutil
 from pathlib import Path
 
+import colour
 import numpy as np
 import scipy.ndimage as ndi
 from PIL import Image
@@ -36,7 +37,7 @@ def main(argv=None) -> int:
     im = Image.open(case / "photo.jpg")
     exif = im.info.get("exif")
     code = np.asarray(im).astype(np.float64) / 255
-    lin = np.where(code <= 0.04045, code / 12.92, ((code + 0.055) / 1.055) ** 2.4)  # IEC 61966-2-1
+    lin = colour.cctf_decoding(code, function="sRGB")
     mask = np.asarray(Image.open(case / "mask_truth.png"))
     cam = truth["camera"]
     H, W = lin.shape[:2]
@@ -51,7 +52,7 @@ def main(argv=None) -> int:
     base = float(np.median((lin @ np.array([0.2126, 0.7152, 0.0722]))[sky]))
     grey = (2.5 * base * (0.7 + 0.6 * ndi.gaussian_filter(rng.uniform(size=(H, W)), 2)))[..., None]
     out_lin = np.clip(np.where(cloud[..., None], (1 - depth) * lin + depth * grey, lin), 0, 1)
-    enc = np.where(out_lin <= 0.0031308, 12.92 * out_lin, 1.055 * out_lin ** (1 / 2.4) - 0.055)
+    enc = colour.cctf_encoding(out_lin, function="sRGB")
     out.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.round(enc * 255).astype(np.uint8)).save(out / "photo.jpg", quality=90, **({"exif": exif} if exif else {}))
     truth["clouds"] = {"share_of_sky_within_0.85_radius": a.share, "seed": a.seed, "pixels": int(cloud.sum()),
