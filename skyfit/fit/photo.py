@@ -868,10 +868,14 @@ def photo_settings(config: dict, overrides: dict | None, calibrated: bool):
 
 
 def _fixed_camera_values(meta: dict | None) -> dict:
+    """The camera response values a camera file fixes: those it gives, and saturations of 1 where it gives spectral
+    sensitivities without them (the curves render the camera's colour)."""
     out = {}
     for k in CAMERA_RESPONSE:
         if meta and meta.get(k) is not None:
             out[k] = float(meta[k])
+    if meta and meta.get("spectral_sensitivities"):
+        out = {"saturation_red": 1.0, "saturation_blue": 1.0, **out}
     return out
 
 
@@ -898,8 +902,6 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     calibrated = not scene.candidates
     s = photo_settings(config, overrides, calibrated)
     fixed = _fixed_camera_values(camera_meta)
-    if camera_meta and camera_meta.get("spectral_sensitivities"):  # they render the camera's colour: no saturation
-        fixed = {"saturation_red": 1.0, "saturation_blue": 1.0, **fixed}
     free = [n for n in s.free if n not in fixed]
     # the Rayleigh optical depth of a site follows its surface pressure, exp(-elevation / 8434 m)
     site = {"rayleigh_scale": math.exp(-float(scene.location.get("elevation_m", 0.0)) / PRESSURE_SCALE_HEIGHT_M)}
