@@ -15,6 +15,7 @@ keys written), not the aerosol.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -677,3 +678,68 @@ def test_a_mirrored_camera_is_fitted_flipped_and_carries_to_another_hour(photos,
     (tmp_path / "bad.yaml").write_text("mirror: yes please\n")
     _refused(_fit_argv(tmp_path / "m1.jpg", tmp_path / "mirror" / "r2.json", photos / "cheap.yaml", T1, "--camera",
                        tmp_path / "bad.yaml"), capsys, tmp_path / "mirror", "bad.yaml", "mirror must be true or false")
+
+
+# -- monochrome cameras ----------------------------------------------------------------------------------------
+def test_a_grey_photo_is_fitted_as_one_channel(photos, tmp_path, capsys):
+    """The test sky as a monochrome camera sees it (its luminance, the fit's default grey curve) in an 8-bit grey
+    JPEG: the camera comes from the image as for the colour photos (:func:`check_photo_result`), RESULT.json says
+    ``monochrome``, the white balance and colour rendering stay at 1 and the Angstrom exponent at its start (one band
+    cannot measure it, and a note says so)."""
+    from skyfit.render.colour import srgb_luminance_weights
+
+    grey = codes8(linear_sky(T1) @ srgb_luminance_weights())
+    Image.fromarray(grey, "L").save(tmp_path / "grey.jpg", quality=95)
+    out = tmp_path / "out"
+    out.mkdir()
+    rc, so, se = run(_fit_argv(tmp_path / "grey.jpg", out / "r.json", photos / "cheap.yaml", T1), capsys)
+    assert rc == 0, se
+    r = check_photo_result(out, "grey.jpg")
+    assert r["photo"]["monochrome"] is True
+    assert all(r["camera"][k] == 1.0 for k in ("gain_red", "gain_blue", "saturation_red", "saturation_blue"))
+    assert r["aerosol"]["angstrom_alpha"] == fit_photo_module.PHOTO_SETTINGS["initial"]["mie_angstrom_alpha"]
+    assert "mie_angstrom_alpha" not in r["free"]
+    assert any("monochrome photo" in n and "Angstrom exponent" in n for n in r["notes"])
+
+
+def test_a_grey_photo_weighs_each_pixel_once_and_takes_one_curve(photos, tmp_path):
+    """Its three equal channels carry one measurement: each block's sigma is sqrt(3) times what the same values read
+    as colour would have, so the likelihood counts a pixel once. Its curve: a camera file's one curve, else the CIE
+    photopic luminance (a file of 683 y-bar gives the default to 1e-12)."""
+    import colour
+
+    from skyfit.fit.photo import block_image, block_observation, mono_response, prepare_scene
+
+    grey = codes8(linear_sky(T1) @ np.array([0.2126, 0.7152, 0.0722]))
+    Image.fromarray(grey, "L").save(tmp_path / "grey.png")
+    scene = prepare_scene(tmp_path / "grey.png", time=T1, location=LOC)
+    blocks = block_image(scene, target=300)
+    mono = block_observation(scene, blocks, blocks.usable)
+    colour_scene = dataclasses.replace(scene, photo=dataclasses.replace(scene.photo, meta={**scene.photo.meta, "monochrome": False}))
+    rgb = block_observation(colour_scene, blocks, blocks.usable)
+    torch.testing.assert_close(mono.values, rgb.values, rtol=0, atol=0)
+    torch.testing.assert_close(mono.sigma, rgb.sigma * math.sqrt(3.0), rtol=1e-12, atol=0)
+    cmf = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
+    np.savetxt(tmp_path / "y.csv", np.column_stack([cmf.wavelengths, 683.0 * cmf.values[:, 1]]), delimiter=",",
+               header="wavelength_nm,S", comments="")
+    wl0, s0 = mono_response(None, "grey.png")
+    wl1, s1 = mono_response({"spectral_sensitivities": str(tmp_path / "y.csv")}, "grey.png")
+    assert s0.shape == s1.shape == (wl0.size, 3)
+    np.testing.assert_allclose(s1, s0, rtol=1e-12)
+    np.testing.assert_allclose(wl1, wl0)
+
+
+def test_curves_of_the_wrong_kind_for_the_photo_are_refused(photos, tmp_path, capsys):
+    """A grey photo with a camera file of three curves, a colour photo with one of one curve: one line, exit 2,
+    before any work."""
+    Image.fromarray(codes8(linear_sky(T1) @ np.array([0.2126, 0.7152, 0.0722])), "L").save(tmp_path / "grey.jpg", quality=95)
+    _srgb_cmf_csv(tmp_path / "rgb.csv")
+    np.savetxt(tmp_path / "one.csv", [[400, 0.2], [550, 1.0], [700, 0.3]], delimiter=",")
+    (tmp_path / "rgb.yaml").write_text("spectral_sensitivities: rgb.csv\n")
+    (tmp_path / "one.yaml").write_text("spectral_sensitivities: one.csv\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    _refused(_fit_argv(tmp_path / "grey.jpg", out / "r.json", photos / "cheap.yaml", T1, "--camera", tmp_path / "rgb.yaml"),
+             capsys, out, "grey.jpg", "a grey image", "rgb.csv", "give one")
+    _refused(_fit_argv(photos / "sky.jpg", out / "r.json", photos / "cheap.yaml", T1, "--camera", tmp_path / "one.yaml"),
+             capsys, out, "sky.jpg", "a colour image", "one.csv", "give R, G and B")

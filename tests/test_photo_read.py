@@ -458,13 +458,51 @@ def test_bad_files(tmp_path):
     assert issubclass(PhotoError, ValueError)
 
 
+@pytest.mark.parametrize("bits, ext", [(8, "png"), (8, "jpg"), (16, "tif")])
+def test_a_grey_image_is_read_as_three_equal_channels_and_marked_monochrome(tmp_path, bits, ext):
+    m = 2**bits - 1
+    grey = np.random.default_rng(2).integers(0, m + 1, size=(16, 24)).astype(np.uint8 if bits == 8 else np.uint16)
+    grey[:8, :8] = m  # a flat saturated block (JPEG keeps it at the top code)
+    p = tmp_path / f"grey.{ext}"
+    if ext == "tif":
+        tifffile.imwrite(p, grey)
+    else:
+        Image.fromarray(grey, "L").save(p, **({"quality": 100} if ext == "jpg" else {}))
+    ph = read_photo(p)
+    assert ph.meta["monochrome"] is True and ph.meta["bit_depth"] == bits
+    assert ph.rgb.shape == (16, 24, 3)
+    np.testing.assert_array_equal(ph.rgb[..., 0], ph.rgb[..., 1])
+    np.testing.assert_array_equal(ph.rgb[..., 0], ph.rgb[..., 2])
+    np.testing.assert_array_equal(ph.censored_high[..., 0], ph.censored_high[..., 2])
+    assert ph.censored_high[:8, :8].all()
+    if ext != "jpg":  # the decoded grey is the sRGB curve of its codes
+        ok = ~ph.censored_high[..., 0] & ~ph.censored_low[..., 0]
+        np.testing.assert_allclose(ph.rgb[..., 1][ok], srgb_dec(grey / m)[ok], rtol=1e-12)
+    # a grey + alpha PNG: alpha is the valid mask, as RGBA's
+    la = np.stack([grey.astype(np.uint8) if bits == 8 else (grey >> 8).astype(np.uint8), np.full(grey.shape, 255, np.uint8)], -1)
+    la[3, 5, 1] = 0
+    Image.fromarray(la, "LA").save(tmp_path / "la.png")
+    ph_la = read_photo(tmp_path / "la.png")
+    assert ph_la.meta["monochrome"] and not ph_la.valid[3, 5] and ph_la.valid.sum() == grey.size - 1
+    # a colour image is not
+    Image.fromarray(np.stack([grey.astype(np.uint8)] * 3, -1)).save(tmp_path / "rgb.png")
+    assert read_photo(tmp_path / "rgb.png").meta["monochrome"] is False
+
+
+def test_a_bracket_of_grey_and_colour_frames_is_refused(tmp_path):
+    L = scene()
+    write_bracket(tmp_path / "b", L, [0.25, 1.0], exif=True)
+    f0 = sorted((tmp_path / "b").iterdir())[0]
+    Image.fromarray(np.asarray(Image.open(f0).convert("L"))).save(f0)
+    with pytest.raises(PhotoError, match=r"the frames mix grey and colour images .*grey.*colour") as e:
+        read_photo(tmp_path / "b")
+    one_line(e)
+
+
 def test_bad_depth_and_channels(tmp_path):
-    Image.fromarray(np.zeros((4, 4), np.uint8)).save(tmp_path / "gray.png")
-    with pytest.raises(PhotoError, match=r"gray\.png: expected an RGB or RGBA image, got 1 channel"):
-        read_photo(tmp_path / "gray.png")
-    tifffile.imwrite(tmp_path / "two.tif", np.zeros((4, 4, 2), np.uint8), planarconfig="contig")
-    with pytest.raises(PhotoError, match=r"two\.tif: expected an RGB or RGBA image, got 2 channel"):
-        read_photo(tmp_path / "two.tif")
+    tifffile.imwrite(tmp_path / "five.tif", np.zeros((4, 4, 5), np.uint8), planarconfig="contig")
+    with pytest.raises(PhotoError, match=r"five\.tif: expected a grey, grey \+ alpha, RGB or RGBA image, got 5 channels"):
+        read_photo(tmp_path / "five.tif")
     tifffile.imwrite(tmp_path / "u32.tif", np.zeros((4, 4, 3), np.uint32), photometric="rgb")
     with pytest.raises(PhotoError, match=r"u32\.tif: unsupported bit depth \(uint32\)"):
         read_photo(tmp_path / "u32.tif")

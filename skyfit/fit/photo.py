@@ -232,7 +232,8 @@ def camera_from_dict(meta: dict, shape: tuple[int, int], photo: str | None = Non
 
 
 def read_sensitivities(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """A CSV of spectral sensitivities: wavelength [nm], R, G, B per row (a header line allowed) -> (K,), (K, 3)."""
+    """A CSV of spectral sensitivities: wavelength [nm], R, G, B per row, or wavelength and one curve for a monochrome
+    camera (a header line allowed) -> (K,), (K, 3) or (K, 1)."""
     p = Path(path)
     try:
         arr = np.genfromtxt(p, delimiter=",", comments="#", skip_header=0)
@@ -240,8 +241,9 @@ def read_sensitivities(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             arr = arr[1:]
     except (OSError, ValueError) as e:
         raise PhotoFitError(f"spectral sensitivities {p}: cannot read: {e}") from None
-    if arr.ndim != 2 or arr.shape[1] != 4 or arr.shape[0] < 3 or not np.isfinite(arr).all():
-        raise PhotoFitError(f"spectral sensitivities {p}: need rows 'wavelength_nm,R,G,B' (>= 3 rows, finite)")
+    if arr.ndim != 2 or arr.shape[1] not in (2, 4) or arr.shape[0] < 3 or not np.isfinite(arr).all():
+        raise PhotoFitError(f"spectral sensitivities {p}: need rows 'wavelength_nm,R,G,B' (or 'wavelength_nm,S' for a "
+                            "monochrome camera; >= 3 rows, finite)")
     if not np.all(np.diff(arr[:, 0]) > 0):
         raise PhotoFitError(f"spectral sensitivities {p}: wavelengths must increase")
     # an output's curves (a camera's sensitivities through its colour matrix, as the CIE observer's through sRGB's)
@@ -249,6 +251,37 @@ def read_sensitivities(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if not (np.trapezoid(arr[:, 1:], arr[:, 0], axis=0) > 0).all():
         raise PhotoFitError(f"spectral sensitivities {p}: each channel's integral over wavelength must be > 0")
     return arr[:, 0], arr[:, 1:]
+
+
+MONO_HELD = ("gain_red", "gain_blue", "saturation_red", "saturation_blue", "mie_angstrom_alpha")
+"""Not fitted to a monochrome photo: its one channel has no white balance or colour rendering, and one band cannot
+measure the aerosol's spectral slope (the Angstrom exponent stays at the config's value unless ``free`` names it;
+the AOD at 550 nm, which a panchromatic band centred near it measures, moves with it by a few per cent: docs/photos.md)."""
+
+
+def check_sensitivities(curves: np.ndarray, mono: bool, path: str, source: str) -> None:
+    """PhotoFitError unless a grey photo has one curve and a colour photo three."""
+    if mono and curves.shape[1] != 1:
+        raise PhotoFitError(f"photo {source}: a grey image, but the camera file's spectral sensitivities {path} have "
+                            "three curves; give one, 'wavelength_nm,S'")
+    if not mono and curves.shape[1] != 3:
+        raise PhotoFitError(f"photo {source}: a colour image, but the camera file's spectral sensitivities {path} have "
+                            "one curve (a monochrome camera's); give R, G and B")
+
+
+def mono_response(camera_meta: dict | None, source: str) -> tuple[np.ndarray, np.ndarray]:
+    """The spectral sensitivity of a monochrome photo's one channel, repeated for the three equal channels it is read
+    as: the camera file's one curve, else the CIE 1931 photopic luminance 683 y-bar (a colorimetric grey, as a colour
+    photo's default is linear sRGB of the CIE observer)."""
+    if camera_meta and camera_meta.get("spectral_sensitivities"):
+        wl, curves = read_sensitivities(camera_meta["spectral_sensitivities"])
+        check_sensitivities(curves, True, camera_meta["spectral_sensitivities"], source)
+    else:
+        from ..render.colour import _cmfs
+
+        wl, cmf = _cmfs()
+        curves = 683.0 * cmf[:, 1:2]
+    return wl, np.repeat(curves, 3, axis=1)
 
 
 # -- the scene ------------------------------------------------------------------------------------
@@ -288,6 +321,9 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
             raise PhotoFitError(f"photo {src}: the mask is {mask.shape[0]}x{mask.shape[1]}, the photo {H}x{W}")
     if isinstance(camera, (str, Path)):
         camera = read_camera(camera)
+    if isinstance(camera, dict) and camera.get("spectral_sensitivities"):  # refused before any work
+        curves = read_sensitivities(camera["spectral_sensitivities"])[1]
+        check_sensitivities(curves, bool(photo.meta.get("monochrome")), camera["spectral_sensitivities"], src)
     mirror = isinstance(camera, dict) and bool(camera.get("mirror"))
     if mirror:  # a mirrored view of the sky: flipped left-right it is a camera's looking up
         photo = mirrored_photo(photo)
@@ -557,6 +593,8 @@ def block_observation(scene: PhotoScene, blocks: BlockImage, use: np.ndarray, *,
     floor = 1e-4 * float(np.median(vals[vals > 0])) if (vals > 0).any() else 1e-12
     sig = np.sqrt(var + (sigma_relative * vals) ** 2)
     sig = np.maximum(sig, floor)
+    if scene.photo.meta.get("monochrome"):  # three equal channels, one measurement: each weighs a third
+        sig = sig * math.sqrt(3.0)
     h, w = use.shape
     yy, xx = np.divmod(idx, w)
     r = np.hypot(xx - float(cam.cx), yy - float(cam.cy)) / float(cam.r90)
@@ -903,12 +941,24 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     s = photo_settings(config, overrides, calibrated)
     fixed = _fixed_camera_values(camera_meta)
     free = [n for n in s.free if n not in fixed]
+    mono = bool(scene.photo.meta.get("monochrome"))
+    if mono:
+        chosen = "free" in (config.get("fit") or {}) or "free" in (overrides or {})
+        held = [n for n in free if n in MONO_HELD and (n != "mie_angstrom_alpha" or not chosen)]
+        free = [n for n in free if n not in held]
+        if "mie_angstrom_alpha" in held:
+            alpha = s.initial.get("mie_angstrom_alpha", config.get("mie", {}).get("angstrom_alpha"))
+            scene.notes.append(f"a monochrome photo: one band cannot measure the Angstrom exponent, held at {alpha:g} "
+                               "(name it in the fit's free parameters to fit it)")
     # the Rayleigh optical depth of a site follows its surface pressure, exp(-elevation / 8434 m)
     site = {"rayleigh_scale": math.exp(-float(scene.location.get("elevation_m", 0.0)) / PRESSURE_SCALE_HEIGHT_M)}
     s = dataclasses.replace(s, free=free, initial={**site, **fixed, **s.initial})
     response = None
-    if camera_meta and camera_meta.get("spectral_sensitivities"):
+    if mono:
+        response = mono_response(camera_meta, scene.photo.source)
+    elif camera_meta and camera_meta.get("spectral_sensitivities"):
         response = read_sensitivities(camera_meta["spectral_sensitivities"])
+        check_sensitivities(response[1], False, camera_meta["spectral_sensitivities"], scene.photo.source)
     timings = dict(scene.seconds)
 
     shared: dict = {}  # Bruneton tables at the starting atmosphere, shared by the short fits (camera-independent)

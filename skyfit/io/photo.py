@@ -399,6 +399,7 @@ class _Frame:
     clip_code: float | None = None            # encoded clip threshold (LDR); None: the pixel's own value bounds it
     black_code: float | None = None
     info: dict = dataclasses.field(default_factory=dict)
+    mono: bool = False                        # a grey image: its one channel in all three of ``codes``
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -443,15 +444,28 @@ def _read_ldr_array(path: str, kind: str) -> np.ndarray:
     return arr
 
 
-def _check_channels(path: str, arr: np.ndarray) -> None:
+def _check_channels(path: str, arr: np.ndarray) -> bool:
+    """Whether ``arr`` is a grey image (H, W), (H, W, 1) or grey + alpha (H, W, 2); RGB or RGBA else; PhotoError
+    for anything else."""
+    if arr.ndim == 2 or (arr.ndim == 3 and arr.shape[-1] in (1, 2)):
+        return True
     if arr.ndim != 3 or arr.shape[-1] not in (3, 4):
-        n = 1 if arr.ndim == 2 else (arr.shape[-1] if arr.ndim == 3 else None)
-        what = f"{n} channel(s)" if n is not None else f"shape {arr.shape}"
-        raise PhotoError(f"photo {path}: expected an RGB or RGBA image, got {what}")
+        what = f"{arr.shape[-1]} channels" if arr.ndim == 3 else f"shape {arr.shape}"
+        raise PhotoError(f"photo {path}: expected a grey, grey + alpha, RGB or RGBA image, got {what}")
+    return False
+
+
+def _as_rgba(arr: np.ndarray) -> np.ndarray:
+    """A grey (+ alpha) image as RGB(A) of three equal channels: the rest of the path reads three channels, and
+    a monochrome photo's fit counts them as one (:func:`skyfit.fit.photo.block_observation`)."""
+    g = arr if arr.ndim == 3 else arr[..., None]
+    return np.concatenate([np.repeat(g[..., :1], 3, -1), g[..., 1:]], -1)
 
 
 def _ldr_frame(path: str, kind: str, arr: np.ndarray, exif: dict) -> _Frame:
-    _check_channels(path, arr)
+    mono = _check_channels(path, arr)
+    if mono:
+        arr = _as_rgba(arr)
     if arr.dtype == np.uint8:
         bits = 8
     elif arr.dtype == np.uint16:
@@ -467,7 +481,7 @@ def _ldr_frame(path: str, kind: str, arr: np.ndarray, exif: dict) -> _Frame:
     return _Frame(path=path, kind=kind, codes=codes, max_code=max_code, levels=float(max_code),
                   code_noise=JPEG_CODE_NOISE if kind == "jpeg" else 0.0, bit_depth=bits,
                   high=high, low=low, valid=valid, exif=exif,
-                  clip_code=DEFAULT_CLIP_LEVEL, black_code=DEFAULT_BLACK_LEVEL)
+                  clip_code=DEFAULT_CLIP_LEVEL, black_code=DEFAULT_BLACK_LEVEL, mono=mono)
 
 
 def _raw_frame(path: str, exif: dict) -> _Frame:
@@ -800,8 +814,8 @@ def _check_exposures(path: str, exposures, n: int) -> list[float] | None:
     return vals
 
 
-def _base_meta(fmt: str, bit_depth: int, exif: dict) -> dict:
-    meta = {"format": fmt, "bit_depth": int(bit_depth), "notes": []}
+def _base_meta(fmt: str, bit_depth: int, exif: dict, monochrome: bool = False) -> dict:
+    meta = {"format": fmt, "bit_depth": int(bit_depth), "monochrome": bool(monochrome), "notes": []}
     meta.update({k: exif.get(k) for k in ("exposure_s", "f_number", "iso", "datetime_original", "camera_make", "camera_model")})
     return meta
 
@@ -826,6 +840,7 @@ def _read_linear_image(path: str, kind: str, exposures, linear: bool, response) 
     exps = _check_exposures(path, exposures, 1)
     valid = None
     info: dict = {}
+    mono = False
     if kind == "hdr":
         try:
             img, header = read_hdr(path)
@@ -851,7 +866,8 @@ def _read_linear_image(path: str, kind: str, exposures, linear: bool, response) 
             img = np.stack([chans[c] for c in "RGB"], -1).astype(np.float64)
         elif "Y" in chans:
             img = np.repeat(chans["Y"][..., None].astype(np.float64), 3, -1)
-            notes.append("the EXR holds luminance Y only; used for all three channels")
+            mono = True
+            notes.append("the EXR holds luminance Y only: a monochrome photo")
         else:
             raise PhotoError(f"photo {path}: an EXR needs R, G, B or Y channels, has {sorted(chans)}")
         if "A" in chans:
@@ -872,7 +888,7 @@ def _read_linear_image(path: str, kind: str, exposures, linear: bool, response) 
     floor = HDR_FLOOR_FRACTION * scale
     variance = (HDR_RELATIVE_NOISE * rgb) ** 2 + floor**2
     h, w = rgb.shape[:2]
-    meta = _base_meta(kind, bits, {})
+    meta = _base_meta(kind, bits, {}, mono)
     meta.update({"response": "linear", "response_source": "--linear" if linear else "default",
                  "frames": [{"path": path, "exposure_s": None, "f_number": None, "iso": None, "relative_exposure": e,
                              "exposure_source": "given" if exps else "unknown"}],
@@ -924,7 +940,7 @@ def _read_single(path: str, kind: str, linear: bool, exposures, response) -> Lin
     else:
         e, esrc = 1.0, "unknown"
     rgb, var, high, low, valid, darkest, dsat = _merge([frame], [resp], [e])
-    meta = _base_meta(kind, frame.bit_depth, ex)
+    meta = _base_meta(kind, frame.bit_depth, ex, frame.mono)
     meta.update({"response": resp.name, "response_source": source,
                  "frames": _frame_list_meta([frame], [e], [esrc]), "noise": _noise_meta([frame])})
     if resp.table is not None:
@@ -1000,6 +1016,10 @@ def _read_bracket(folder: str, linear: bool, exposures, response) -> LinearPhoto
     for f in frames:
         notes.extend(f.info.pop("notes", []))
     h, w = frames[0].shape
+    if len({f.mono for f in frames}) > 1:
+        raise PhotoError(f"photo {folder}: the frames mix grey and colour images ("
+                         + ", ".join(f"{os.path.basename(f.path)} {'grey' if f.mono else 'colour'}" for f in frames)
+                         + "); a bracket is one camera's")
     for f in frames[1:]:
         if f.shape != (h, w):
             raise PhotoError(f"photo {folder}: the frames differ in size: {os.path.basename(files[0])} is {w}x{h}, "
@@ -1105,7 +1125,7 @@ def _read_bracket(folder: str, linear: bool, exposures, response) -> LinearPhoto
 
     rgb, var, high, low, valid, darkest, dsat = _merge(frames, responses, rel_exp)
     first = frames[0]
-    meta = _base_meta("bracket", max(f.bit_depth for f in frames), first.exif)
+    meta = _base_meta("bracket", max(f.bit_depth for f in frames), first.exif, first.mono)
     meta.update({"frame_format": kinds[0], "response": resp.name, "response_source": source,
                  "frames": _frame_list_meta(frames, rel_exp, esrc), "noise": _noise_meta(frames),
                  "darkest_frame": files[order[0]]})

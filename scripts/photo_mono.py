@@ -1,0 +1,53 @@
+"""Turn a photo of the synthetic suite (scripts/photo_study.py's cases) into a monochrome camera's, to measure the
+grey-image path of a photo fit (docs/photos.md, "Monochrome cameras").
+
+    .venv/bin/python scripts/photo_mono.py /tmp/photo_cases/case_002 /tmp/mono/case_002
+    skyfit fit /tmp/mono/case_002/photo.jpg --time T --location LAT,LON,ELEV --out r.json
+
+Each frame (``photo.jpg``, or every ``bracket/*.jpg``) is decoded from sRGB (colour-science's cctf), its linear
+luminance taken with the sRGB (Rec. 709) weights, encoded to sRGB again and written as an 8-bit grey JPEG (quality
+90, the EXIF kept). So the grey camera's curve is the luma-weighted sum of the case camera's output curves: the CIE
+photopic luminance where the case's camera is colorimetric, a camera's own panchromatic mix otherwise, which is what
+a monochrome sensor's is too (the fit's default curve is the CIE one). The saturated sun stays saturated: a channel at
+the clip is 1 after decoding, and luminance of three clipped channels is 1.
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+from pathlib import Path
+
+import colour
+import numpy as np
+from PIL import Image
+
+LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+
+def grey_jpeg(src: Path, dst: Path) -> None:
+    im = Image.open(src)
+    exif = im.info.get("exif")
+    lin = colour.cctf_decoding(np.asarray(im).astype(np.float64) / 255, function="sRGB")
+    enc = colour.cctf_encoding(np.clip(lin @ LUMA, 0, 1), function="sRGB")
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.round(enc * 255).astype(np.uint8), mode="L").save(dst, quality=90, **({"exif": exif} if exif else {}))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("case", help="a case folder of the suite (photo.jpg or bracket/, truth.json, mask_truth.png)")
+    ap.add_argument("out", help="folder to write the grey photo.jpg or bracket/, truth.json and mask_truth.png")
+    a = ap.parse_args(argv)
+    case, out = Path(a.case), Path(a.out)
+    frames = [case / "photo.jpg"] if (case / "photo.jpg").exists() else sorted((case / "bracket").glob("*.jpg"))
+    for f in frames:
+        grey_jpeg(f, out / f.relative_to(case))
+    for name in ("truth.json", "mask_truth.png"):
+        if (case / name).exists():
+            shutil.copy(case / name, out / name)
+    print(f"{out}: {len(frames)} grey frame(s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
