@@ -4,6 +4,9 @@ grey-image path of a photo fit (docs/photos.md, "Monochrome cameras").
     .venv/bin/python scripts/photo_mono.py /tmp/photo_cases/case_002 /tmp/mono/case_002
     skyfit fit /tmp/mono/case_002/photo.jpg --time T --location LAT,LON,ELEV --out r.json
 
+    for c in $(seq -w 0 19); do .venv/bin/python scripts/photo_mono.py /tmp/photo_cases/case_0$c /tmp/mono/case_0$c; done
+    OMP_NUM_THREADS=1 .venv/bin/python scripts/photo_study.py --cases /tmp/mono --n 20 --out docs/photos/mono --threads 1 --part 0/2
+
 Each frame (``photo.jpg``, or every ``bracket/*.jpg``) is decoded from sRGB (colour-science's cctf), its linear
 luminance taken with the sRGB (Rec. 709) weights, encoded to sRGB again and written as an 8-bit grey JPEG (quality
 90, the EXIF kept). So the grey camera's curve is the luma-weighted sum of the case camera's output curves: the CIE
@@ -45,6 +48,8 @@ def main(argv=None) -> int:
     for name in ("truth.json", "mask_truth.png"):
         if (case / name).exists():
             shutil.copy(case / name, out / name)
+    if (case.parent / "suite.json").exists():  # scripts/photo_study.py then reads the grey suite, not making its own
+        shutil.copy(case.parent / "suite.json", out.parent / "suite.json")
     print(f"{out}: {len(frames)} grey frame(s)")
     return 0
 

@@ -4,7 +4,9 @@
 Radiance ``.hdr``, an EXR without skyfit metadata, or a folder holding one
 scene's exposure bracket, and returns a :class:`LinearPhoto`: linear values
 per unit relative exposure, their variance, and which channels are censored
-(clipped in every frame, or black in every frame). Pixels are kept as stored
+(clipped in every frame, or black in every frame). A grey image (a monochrome camera's; grey + alpha too, and an
+EXR of luminance Y alone) is read as three equal channels with ``meta["monochrome"]`` True: the rest of the path
+reads three channels, and a photo fit then counts them as one. Pixels are kept as stored
 in the file (EXIF orientation is not applied, as rawpy's ``user_flip=0``), so
 a camera calibration refers to the sensor's layout.
 
@@ -1151,7 +1153,8 @@ def read_photo(path, *, linear: bool = False, exposures: Sequence[float] | None 
     """Read a photo file or a bracket folder as one linear HDR image (module docstring for the models).
 
     Args:
-        path: a JPEG/PNG/TIFF (8 or 16 bit, RGB or RGBA), a camera RAW file, a Radiance ``.hdr``, an
+        path: a JPEG/PNG/TIFF (8 or 16 bit, RGB or RGBA, or grey (+ alpha): read as three equal channels,
+            ``meta['monochrome']`` True), a camera RAW file, a Radiance ``.hdr``, an
             EXR without skyfit metadata, or a folder holding only the frames of one scene's exposure
             bracket (one format, >= 2 frames; hidden files ignored).
         linear: the LDR codes are linear (same as ``response="linear"``).
