@@ -1,0 +1,70 @@
+"""Are the coverage study's high aerosol layers a local minimum? (docs/uncertainty.md, "Where the misses are")
+
+For skies of scripts/coverage_model_error.py (same draw: ``--seed``, the sky's index), the fit of the study is
+repeated from ``--starts`` spread starts (skyfit's Latin-hypercube over each parameter's typical span) and from
+the truth's aerosol scale height H_M, and with ``--reference`` the budget's reference renderer (Bruneton tables
+16 x 64 x 16 x 8, 6 orders, a 32/128-node single scattering; skyfit.fit.budget) is fitted from the fit's optimum:
+where the fit's own likelihood puts H_M, and where a converged renderer's does. One JSON line per sky.
+
+    OMP_NUM_THREADS=1 .venv/bin/python scripts/coverage_basins.py --seed 0 --skies 3,7,17
+    OMP_NUM_THREADS=1 .venv/bin/python scripts/coverage_basins.py --seed 1 --skies 4 --reference
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import coverage_model_error as C  # noqa: E402
+
+from skyfit.fit import FitOptions, fit  # noqa: E402
+from skyfit.fit.budget import reference_problem  # noqa: E402
+from skyfit.fit.problem import fit_settings, prepare  # noqa: E402
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--skies", required=True, help="comma list of sky indices")
+    ap.add_argument("--starts", type=int, default=4)
+    ap.add_argument("--reference", action="store_true", help="also fit the budget's reference renderer (minutes a sky)")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    truth_args = argparse.Namespace(size=10, wavelengths=3, truth_light=64, truth_view=64, truth_tables="16,64,16,8",
+                                    truth_orders=8)  # coverage_model_error.py's defaults
+    for k in (int(v) for v in a.skies.split(",")):
+        rng = np.random.default_rng([a.seed, k])
+        t = C.draw_truth(rng, k % 2 == 1)
+        obs, _ = C.observe(t, truth_args, rng)
+        cfg = C.fit_config()
+        prep = prepare([obs], cfg, fit_settings(cfg["fit"]))
+        problem = prep.fit_problem()
+        param, base = problem.param, prep.settings.options(False)
+        row = {"seed": a.seed, "sky": k, "two_term": k % 2 == 1, "truth": {n: t[n] for n in C.FREE}}
+        c0 = time.process_time()
+        res = fit(problem, dataclasses.replace(base, starts=a.starts))
+        row["starts"] = [{"H_M_start": s["initial"]["mie_scale_height"], "H_M": s["final"]["mie_scale_height"],
+                          "loss": s["loss"]} for s in res.starts]
+        start = {**param.free_dict(param.initial_vector(torch.float64)), "mie_scale_height": t["mie_scale_height"]}
+        r_t = fit(problem, dataclasses.replace(base, starts=1), x0=param.to_unconstrained(start, torch.float64))
+        row["from_true_H_M"] = {"H_M": param.free_dict(r_t.x)["mie_scale_height"], "loss": r_t.loss}
+        row["fit"] = {"values": param.free_dict(res.x), "loss": res.loss, "cpu_s": time.process_time() - c0}
+        if a.reference:
+            c0 = time.process_time()
+            ref = reference_problem(problem)
+            r = fit(ref, FitOptions(starts=1, adam_steps=0, max_iter=60), x0=res.x)
+            row["reference"] = {"values": ref.param.free_dict(r.x), "loss": r.loss, "convergence": r.convergence["reason"],
+                                "cpu_s": time.process_time() - c0}
+        print(json.dumps(row, default=float), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
