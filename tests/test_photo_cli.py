@@ -700,6 +700,14 @@ def test_a_grey_photo_is_fitted_as_one_channel(photos, tmp_path, capsys):
     assert r["aerosol"]["angstrom_alpha"] == fit_photo_module.PHOTO_SETTINGS["initial"]["mie_angstrom_alpha"]
     assert "mie_angstrom_alpha" not in r["free"]
     assert any("monochrome photo" in n and "Angstrom exponent" in n for n in r["notes"])
+    # evaluate: the same grey camera at another hour carries over; a colour photo against a grey camera's fit is refused
+    Image.fromarray(codes8(linear_sky(T2) @ srgb_luminance_weights()), "L").save(tmp_path / "grey2.jpg", quality=95)
+    rc, so, se = run(["evaluate", out / "r.json", tmp_path / "grey2.jpg", "--time", T2, "--location", LOC, "--json",
+                      "--no-progress"], capsys)
+    assert rc == 0, se
+    assert json.loads(so)["sun"]["separation_deg"] < 8.0
+    _refused(["evaluate", out / "r.json", photos / "other.jpg", "--time", T2, "--location", LOC], capsys, out,
+             "other.jpg", "a colour image", "grey (monochrome) camera")
 
 
 def test_a_grey_photo_weighs_each_pixel_once_and_takes_one_curve(photos, tmp_path):

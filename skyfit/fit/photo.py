@@ -1947,6 +1947,11 @@ def evaluate_photo(result: dict, photo, *, time: str, location, refit: Sequence[
     overrides = {k: settings[k] for k in keep if k in settings}
     overrides.update(free=list(refit), initial=fixed_atm)
     scene = prepare_scene(photo, time=time, location=location, camera=cam)
+    was_mono, is_mono = bool((result.get("photo") or {}).get("monochrome")), bool(scene.photo.meta.get("monochrome"))
+    if was_mono != is_mono:
+        kind = lambda m: "grey (monochrome)" if m else "colour"  # noqa: E731
+        raise PhotoFitError(f"photo {scene.photo.source}: a {kind(is_mono)} image, but the fit was of a {kind(was_mono)} "
+                            "camera's photo; evaluate takes another photo of the same camera")
     pf = fit_scene(scene, config, overrides=overrides, camera_meta=cam, laplace=False, progress=progress, device=device,
                    second_pass=False, choose_projection=False)
     r = pf.result
