@@ -85,3 +85,22 @@ def test_delta_method_and_derived_aod():
     g = np.array([b * hm, b * hm * math.log(2000) * sg * (1 - sg), 0.0])
     assert lap["derived"]["mie_aod_550"]["sigma"] == pytest.approx(math.sqrt(g @ cx @ g), rel=1e-8)
     assert lap["derived"]["mie_aod_550"]["value"] == pytest.approx(b * hm, rel=1e-12)
+
+
+def test_a_parameter_on_its_bound_has_no_gaussian_sigma_but_its_interval_reaches_the_bound():
+    """H_M's sigmoid saturated at its upper bound (20 km): the delta method's physical sigma would be about 0 m (the
+    transform's slope), which a reader takes for a measured value; it is None and the name is in ``at_bound``,
+    while the 95 % interval still runs from inside the range to the bound. At the fit's optimum, off the bound, every
+    sigma is there."""
+    obs, _ = tiny_observation(noise=0.01, seed=2)
+    prob = _problem(["mie_beta_550", "mie_scale_height", "exposure"], obs)
+    x = fit(prob, FitOptions(starts=1, adam_steps=0, max_iter=100)).x.clone()
+    mid = laplace_summary(prob, x)
+    assert mid["at_bound"] == [] and mid["sigma"]["mie_scale_height"] is not None
+    x[1] = 20.0  # u = sigmoid(20): 2e-9 from the top
+    lap = laplace_summary(prob, x)
+    assert lap["at_bound"] == ["mie_scale_height"]
+    assert lap["sigma"]["mie_scale_height"] is None
+    assert lap["values"]["mie_scale_height"] == pytest.approx(20000.0, rel=1e-6)
+    lo, hi = lap["interval95"]["mie_scale_height"]
+    assert hi == pytest.approx(20000.0, rel=1e-6) and lo < 20000.0

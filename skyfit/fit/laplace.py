@@ -77,6 +77,27 @@ def physical_slot_values(problem: FitProblem, x: Tensor) -> Tensor:
     return out
 
 
+AT_BOUND = 1e-6
+"""A bounded parameter (``interval``, ``loginterval``) whose position u = sigmoid(x) in its range lies within this of 0
+or 1 sits on its bound. [1]"""
+
+
+def bound_slots(problem: FitProblem, x: Tensor) -> list[bool]:
+    """Whether each slot of x (P,) sits on a bound of its range (:data:`AT_BOUND`). There the transform's slope is 0
+    (the sigmoid saturates, and is clamped beyond :data:`skyfit.fit.parameters.SIGMOID_EDGE`), so the delta method's
+    physical sigma is about 0 whatever the data allow: the likelihood is not Gaussian there, and only the interval
+    (x +- z sigma_x mapped, which reaches from inside the range to the bound) describes it."""
+    p = problem.param
+    out = [False] * x.numel()
+    for n in p.free:
+        if PARAMETERS[n].transform not in ("interval", "loginterval"):
+            continue
+        for k in p._slots[n]:
+            u = float(torch.sigmoid(x[k].detach().to(torch.float64)))
+            out[k] = min(u, 1.0 - u) < AT_BOUND
+    return out
+
+
 def derived_functions(problem: FitProblem):
     """Derived quantities worth a sigma: name -> function of x (a tensor ()), for the free set."""
     p = problem.param
@@ -114,7 +135,7 @@ def covariance_summary(problem: FitProblem, x: Tensor, cov_x: Tensor, pd: bool =
 
     The part of :func:`laplace_summary` after the Hessian, shared with the error budget
     (:mod:`skyfit.fit.budget`), which passes its total covariance. Keys: ``names``, ``values``,
-    ``sigma`` (None where not ``pd`` or zero), ``sigma_unconstrained``, ``correlation``,
+    ``sigma`` (None where not ``pd``, zero, or on a bound), ``at_bound`` (:func:`bound_slots`' names), ``sigma_unconstrained``, ``correlation``,
     ``covariance`` (physical), ``covariance_unconstrained``, ``interval68``, ``interval95``, ``derived``.
     """
     x64 = x.detach().to(torch.float64)
@@ -127,11 +148,13 @@ def covariance_summary(problem: FitProblem, x: Tensor, cov_x: Tensor, pd: bool =
     corr = cov_x / d[:, None] / d[None, :]
     vals = physical_slot_values(problem, x64)
     names = display_names(problem)
+    edge = bound_slots(problem, x64)
     out = {
         "names": names,
         "values": {n: float(v) for n, v in zip(names, vals)},
-        # a variance the Hessian does not make positive is unknown, not zero
-        "sigma": {n: (float(s) if pd and float(s) > 0 else None) for n, s in zip(names, s_v)},
+        # a variance the Hessian does not make positive is unknown, not zero; at a bound not Gaussian (bound_slots)
+        "sigma": {n: (float(s) if pd and float(s) > 0 and not e else None) for n, s, e in zip(names, s_v, edge)},
+        "at_bound": [n for n, e in zip(names, edge) if e],
         "sigma_unconstrained": {n: float(s) for n, s in zip(names, s_x)},
         "correlation": corr.tolist(),
         "covariance": cov_v.tolist(),
