@@ -240,3 +240,36 @@ def test_cli_sigma_flag_reaches_the_fit_settings():
     assert fit_settings(None, _fit_overrides(args)).sigma == "total"
     with pytest.raises(SystemExit):
         build_parser().parse_args(["fit", "sky.exr", "--out", "r.json", "--sigma", "all"])
+
+
+def test_reference_polish_reaches_the_reference_optimum_also_from_a_bound(biased_fit, monkeypatch):
+    """Levenberg-Marquardt on the reference (skyfit.fit.budget.reference_polish) from the fit's optimum, and from the
+    same point with H_M on its 20 km bound (where the fit's sigmoid coordinates have no slope), ends at the brute-force
+    optimum of the reference (L-BFGS to a tight tolerance) within 0.05 noise sigma in every parameter and at its loss;
+    the budget with ``polish`` then shifts x to it (kept because it lowers the reference's loss)."""
+    from skyfit.fit.budget import numerical_term, reference_polish
+
+    prob, res, lap, _ = biased_fit
+    ref = reference_problem(prob, _fine())
+    brute = fit(ref, TIGHT, x0=res.x)
+    vb = ref.param.physical_dict(brute.x)
+    sig = {n: lap["sigma"][n] for n in FREE}
+    x_bound = res.x.clone()
+    x_bound[FREE.index("mie_scale_height")] = 40.0
+    assert prob.param.physical_dict(x_bound)["mie_scale_height"] == pytest.approx(20000.0)
+    for start in (res.x, x_bound):
+        pol = reference_polish(prob, ref, start, 12)
+        vp = prob.param.physical_dict(pol["x"])
+        for n in FREE:
+            assert abs(vp[n] - vb[n]) < 0.05 * sig[n], (n, vp[n], vb[n])
+        assert pol["loss"] == pytest.approx(brute.loss, rel=1e-6) and pol["loss"] <= pol["loss_start"]
+    import skyfit.fit.budget as budget_module
+
+    monkeypatch.setattr(budget_module, "NONLINEAR", -1.0)  # the refits run whatever the Newton step's linearity
+    term = numerical_term(prob, res.x, lap, reference=_fine(), refits=1, polish=12,
+                          options=FitOptions(starts=1, adam_steps=0, max_iter=3))  # one short refit: far from it
+    assert "reference LM steps" in term.budget["method"]
+    assert term.budget["polish"]["loss"] < term.budget["polish"]["loss_start"]
+    vt = prob.param.physical_dict(res.x + term.dx.to(res.x.dtype))
+    for n in FREE:
+        assert abs(vt[n] - vb[n]) < 0.05 * sig[n], (n, vt[n], vb[n])

@@ -92,6 +92,10 @@ class FitSettings:
     sigma_refits: int = 3
     """The numerical term: lagged refits with the reference (at most this many) where the Newton step is
     not linear (skyfit.fit.budget.NONLINEAR); 0: always the Newton step."""
+    sigma_polish: int = 0
+    """The numerical term: after the lagged refits, up to this many Levenberg-Marquardt steps on the reference itself
+    (skyfit.fit.budget.reference_polish; P + 1 renders of the reference a step), where the refits stop short of the
+    reference's optimum (a parameter pushed to its bound by the fit's renderer; docs/uncertainty.md). 0: none."""
     sigma_discrepancy: str = DISCREPANCY_DEFAULT
     """The discrepancy term's model: ``floor`` (a white relative error floor), ``sandwich`` (cluster-robust over
     sky regions) or ``larger`` (an upper bound of both); skyfit.fit.budget, docs/uncertainty.md."""
@@ -138,6 +142,7 @@ SETTING_RANGES: dict[str, tuple[str, float, float, str]] = {
     "min_elevation_deg": ("float", -90, 90, "[)"), "sun_mask_deg": ("float", 0, 180, "[)"),
     "saturation": ("float", 0, _INF, "()"), "sigma_relative": ("float", 0, _INF, "[)"),
     "bin_nm": ("float", 0, _INF, "()"), "select_heldout": ("float", 0, 1, "[)"), "sigma_refits": ("int", 0, _INF, "[)"),
+    "sigma_polish": ("int", 0, _INF, "[)"),
     "sigma_clusters": ("int", 2, _INF, "[)"),
 }
 """Type and range of the numeric fit settings, checked with the setting's name and where it came from

@@ -65,6 +65,7 @@ def result_dict(problem: FitProblem, res: OptimiseResult, *, command: str, setti
                                         reference=None if ref is None else ReferenceModel.of(
                                             problem.model, tables=tuple(ref[:4]), orders=int(ref[4])),
                                         refits=int(st.get("sigma_refits", 0) or 0),
+                                        polish=int(st.get("sigma_polish", 0) or 0),
                                         options=FitOptions(starts=1, adam_steps=0, max_iter=int(st.get("max_iter", 100))),
                                         discrepancy=st.get("sigma_discrepancy") or DISCREPANCY_DEFAULT,
                                         clusters=int(st.get("sigma_clusters") or CLUSTERS),
