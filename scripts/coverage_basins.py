@@ -8,9 +8,7 @@ where the fit's own likelihood puts H_M, and where a converged renderer's does. 
 reference's loss at the truth. With ``--lagged`` the budget's three lagged refits (skyfit.fit.budget.refit_shift, as
 ``numerical_term`` runs them) from the fit's optimum and from H_M = 1.2 km, and the reference's loss where they end.
 With ``--polish N`` (after ``--lagged``), N Levenberg-Marquardt steps on the reference renderer itself from the
-lagged iterate: forward-difference Jacobians (P + 1 renders of its tables a step) in log beta, H_M, Rayleigh scale and
-albedo and linear alpha and g, so that a parameter on its bound (H_M at 20 km, pulled in to 15 km to start) can move,
-which the sigmoid coordinates of the fit cannot. One JSON line per sky.
+lagged iterate (skyfit.fit.budget.reference_polish, what ``fit.sigma_polish`` does). One JSON line per sky.
 
     OMP_NUM_THREADS=1 .venv/bin/python scripts/coverage_basins.py --seed 0 --skies 3,7,17
     OMP_NUM_THREADS=1 .venv/bin/python scripts/coverage_basins.py --seed 1 --skies 4,6 --lagged
@@ -22,7 +20,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -34,54 +31,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import coverage_model_error as C  # noqa: E402
 
 from skyfit.fit import FitOptions, fit  # noqa: E402
-from skyfit.fit.budget import display_names, reference_problem, refit_shift  # noqa: E402
+from skyfit.fit.budget import display_names, reference_polish, reference_problem, refit_shift  # noqa: E402
 from skyfit.fit.laplace import laplace_summary  # noqa: E402
 from skyfit.fit.problem import fit_settings, prepare  # noqa: E402
-
-
-LOG = ("rayleigh_scale", "mie_beta_550", "mie_scale_height", "ground_albedo")
-
-
-def polish(problem, ref, start: dict, steps: int) -> list[dict]:
-    """Levenberg-Marquardt on the reference's whitened residuals from ``start`` (physical values); one dict a step."""
-    param = problem.param
-    names = list(start)
-    obs = problem.observations[0]
-    y, sg = obs.values[obs.mask], obs.sigma[obs.mask]
-    start = {**start, "mie_scale_height": min(start["mie_scale_height"], 15000.0)}
-
-    def values(z):
-        v = {n: math.exp(z[i]) if n in LOG else float(z[i]) for i, n in enumerate(names)}
-        v["ground_albedo"] = min(v["ground_albedo"], 0.999)
-        v["mie_g"] = min(max(v["mie_g"], -0.99), 0.99)
-        v["mie_scale_height"] = min(max(v["mie_scale_height"], 11.0), 19999.0)
-        return v
-
-    def resid(z):
-        with torch.no_grad():
-            m = ref.predict(param.to_unconstrained(values(z), torch.float64))[0]
-        return ((m - y) / sg).reshape(-1).numpy()
-
-    z = np.array([math.log(start[n]) if n in LOG else start[n] for n in names])
-    r, lam, out = resid(z), 1e-3, []
-    for _ in range(steps):
-        c0 = time.process_time()
-        J = np.empty((r.size, z.size))
-        for i in range(z.size):
-            h = 1e-4 * max(1.0, abs(z[i]))
-            dz = np.zeros_like(z)
-            dz[i] = h
-            J[:, i] = (resid(z + dz) - r) / h
-        A, g = J.T @ J, J.T @ r
-        while lam < 1e6:
-            step = -np.linalg.solve(A + lam * (np.diag(np.diag(A)) + 1e-9 * np.trace(A) * np.eye(z.size)), g)
-            rn = resid(z + step)
-            if (rn ** 2).sum() < (r ** 2).sum():
-                z, r, lam = z + step, rn, lam / 3
-                break
-            lam *= 4
-        out.append({"values": values(z), "reference_loss": 0.5 * float((r ** 2).mean()), "cpu_s": time.process_time() - c0})
-    return out
 
 
 def main(argv=None) -> int:
@@ -138,7 +90,9 @@ def main(argv=None) -> int:
                 row["lagged"][label] = {"values": param.free_dict(rs["x"]), "reference_loss": ref_loss(rs["x"]),
                                         "steps_in_sigma": rs["steps"]}
                 if label == "from_fit" and a.polish:
-                    row["polish"] = polish(problem, ref, param.free_dict(rs["x"]), a.polish)
+                    pol = reference_polish(problem, ref, rs["x"], a.polish)
+                    row["polish"] = {"values": param.free_dict(pol["x"]), **{k: pol[k] for k in ("loss", "loss_start",
+                                                                                               "steps", "converged")}}
         if a.reference:
             c0 = time.process_time()
             r = fit(ref, FitOptions(starts=1, adam_steps=0, max_iter=60), x0=res.x)

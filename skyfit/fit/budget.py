@@ -270,8 +270,8 @@ POLISH_EDGE = 1e-6
 
 POLISH_START_EDGE = 0.75
 """A bounded parameter on its bound starts :func:`reference_polish` at this position of its range's natural
-coordinate (log for ``loginterval``, linear for ``interval``) from the other end: off the bound, where the data
-can pull it (H_M's 20 km bound: 6.0 km). [1]"""
+coordinate (log for ``loginterval``, linear for ``interval``), counted from the other end: off the bound, where the
+data can pull it (H_M on its 20 km bound starts at 3.0 km, 10 m x 2000^0.75). [1]"""
 
 
 def _natural(spec, v: float) -> float:
