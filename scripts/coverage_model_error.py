@@ -177,7 +177,7 @@ def one_sky(k: int, args) -> dict:
     c_fit = time.process_time() - c0
     c0 = time.process_time()
     lap = laplace_summary(problem, res.x)
-    term = numerical_term(problem, res.x, lap, refits=args.refits,
+    term = numerical_term(problem, res.x, lap, refits=args.refits, polish=getattr(args, "polish", 0),
                           options=FitOptions(starts=1, adam_steps=0, max_iter=FIT["max_iter"]))
     sigmas = {"total": error_budget(problem, res.x, lap, term=term)}
     for name, kw in variants(args.compare).items():
@@ -195,6 +195,7 @@ def one_sky(k: int, args) -> dict:
            "budget": {kk: tot["budget"].get(kk) for kk in ("chi2_per_dof", "chi2_per_dof_corrected", "floor_relative",
                                                         "floor_relative_68", "model_difference", "sigma_noise", "method", "nonlinearity",
                                                         "refit_steps_in_sigma", "numerical_tail", "numerical_shift_newton",
+                                                        "polish",
                                                         "sigma_numerical", "sigma_discrepancy", "numerical_shift")},
            "discrepancy": {name: {kk: b["budget"].get(kk) for kk in ("discrepancy", "sigma_discrepancy")}
                            for name, b in sigmas.items() if "budget" in b},
@@ -274,11 +275,13 @@ def main(argv=None) -> int:
     ap.add_argument("--truth-tables", default="16,64,16,8", help="R,MU,MU_S,NU of the truth's Bruneton tables")
     ap.add_argument("--truth-orders", type=int, default=8)
     ap.add_argument("--refits", type=int, default=1, help="the budget's lagged refits (fit.sigma_refits)")
+    ap.add_argument("--polish", type=int, default=0, help="the budget's reference polish after the refits "
+                    "(fit.sigma_polish: Levenberg-Marquardt steps on the reference, skyfit.fit.budget.reference_polish)")
     ap.add_argument("--compare", default="", help="other discrepancy models beside the default total, MODEL[:G[:FORM]],... "
                     "(e.g. sandwich:12,sandwich:24:cr1,larger:12)")
     ap.add_argument("--expand", action="store_true", help="also score the total sigma with the phase term (a two-term HG "
                     "refit's shift, skyfit.fit.budget.phase_expansion): columns in68_expand, in95_expand, z_expand")
-    ap.add_argument("--part", default="0/1", help="K/N: run only the skies k with k % N == K (N processes side by side)")
+    ap.add_argument("--part", default="0/1", help="K/N: run only the skies k with k %% N == K (N processes side by side)")
     ap.add_argument("--descending", action="store_true", help="run the part's skies from the last (a second process per part)")
     ap.add_argument("--merge", nargs="+", help="merge the JSON files of the parts into --out (no fitting)")
     ap.add_argument("--threads", type=int, default=1)
