@@ -75,7 +75,7 @@ from ..scattering.bruneton_tables import TableSizes
 from ..scattering.multiple import precompute, sky_radiance
 from ..scattering.single import ray_parameters
 from ..transmittance import make_integrator
-from .laplace import covariance_summary, derived_functions, display_names, laplace_summary, physical_slot_values, transform_jacobian
+from .laplace import bound_slots, covariance_summary, derived_functions, display_names, laplace_summary, physical_slot_values, transform_jacobian
 from .model import FitProblem, SkyModel
 from .optimise import FitOptions, fit
 from .parameters import (MIE_G2_DEFAULT, MIE_HG_WEIGHT_DEFAULT, NUISANCE, PARAMETERS, TWO_TERM_HG, FitError, Parameterisation,
@@ -314,14 +314,13 @@ def reference_polish(problem: FitProblem, reference: FitProblem, x_start: Tensor
     x0 = x_start.detach().to(torch.float64)
     with torch.no_grad():
         v0 = physical_slot_values(problem, x0)
+    edge = bound_slots(problem, x0)
     z = []
     for (n, k), spec, hi, v in zip(slots, specs, his, v0.tolist()):
-        if spec.transform in ("interval", "loginterval"):
-            u = float(torch.sigmoid(x0[k]))
-            if min(u, 1.0 - u) < 1e-6:  # on a bound: no slope there for the data to pull on
-                lo, top = _natural(spec, spec.lo), _natural(spec, spec.hi if hi is None else hi)
-                z.append(lo + POLISH_START_EDGE * (top - lo) if u > 0.5 else top - POLISH_START_EDGE * (top - lo))
-                continue
+        if edge[k]:  # on a bound: no slope there for the data to pull on
+            lo, top = _natural(spec, spec.lo), _natural(spec, spec.hi if hi is None else hi)
+            z.append(lo + POLISH_START_EDGE * (top - lo) if float(x0[k]) > 0 else top - POLISH_START_EDGE * (top - lo))
+            continue
         z.append(_natural(spec, v))
     z = torch.tensor(z, dtype=torch.float64)
 
