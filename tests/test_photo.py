@@ -9,8 +9,6 @@ Random tests use fixed seeds and 5-sigma bounds from the sampling distribution.
 from __future__ import annotations
 
 import math
-import struct
-import zlib
 
 import colour
 import numpy as np
@@ -20,9 +18,11 @@ import skimage.io
 import torch
 from torch.testing import assert_close
 
+from _png import png16
+
 from skyfit.camera import FisheyeCamera
 from skyfit.camera.likelihood import censored_gaussian_nll, fit_exposure_scale
-from skyfit.camera.photo_io import load_ldr_photo
+from skyfit.camera.photo_io import load_ldr_photo, read_png16
 from skyfit.camera.sensor import spectral_response_matrix, synthesize_photo, vignetting_map
 from skyfit.camera.srgb import srgb_decode, srgb_encode
 from skyfit.render import spectral_to_xyz, spectral_to_xyz_matrix, xyz_to_linear_srgb
@@ -73,19 +73,6 @@ def test_srgb_decode_gradcheck_across_the_break():
 # ---------------------------------------------------------------- LDR files
 
 
-def _png16(path, arr: np.ndarray) -> None:
-    """Minimal 16-bit RGB PNG writer (PNG spec, ISO/IEC 15948: filter 0 rows, one IDAT),
-    for the files skimage/Pillow cannot write."""
-    h, w, _ = arr.shape
-    raw = b"".join(b"\x00" + arr[i].astype(">u2").tobytes() for i in range(h))
-
-    def chunk(tag: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
-
-    ihdr = struct.pack(">IIBBBBB", w, h, 16, 2, 0, 0, 0)
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
-
-
 @pytest.mark.parametrize("bits, ext", [(8, "png"), (16, "tif")])
 def test_load_round_trip_and_censoring(tmp_path, bits, ext):
     rng = np.random.default_rng(bits)
@@ -113,17 +100,32 @@ def test_load_round_trip_and_censoring(tmp_path, bits, ext):
     assert obs2.rgb.dtype == torch.float32 and not obs2.censored_high[0, 2, 0] and obs2.censored_high[0, 0, 0]
 
 
-def test_16bit_rgb_png_is_read_exactly_or_refused(tmp_path):
-    # Pillow (13.0) decodes 16-bit RGB PNG to 8 bits: we must not pass that off as data.
-    codes = np.random.default_rng(0).integers(0, 65536, size=(6, 5, 3)).astype(np.uint16)
-    _png16(tmp_path / "sky16.png", codes)
-    if skimage.io.imread(tmp_path / "sky16.png").dtype == np.uint16:  # a reader that keeps 16 bits
+@pytest.mark.parametrize("channels", [1, 2, 3, 4])
+def test_16bit_png_is_read_at_full_depth(tmp_path, channels):
+    # Pillow (13.0) decodes 16-bit RGB PNG to 8 bits; pypng reads every colour type at 16 bits
+    codes = np.random.default_rng(channels).integers(0, 65536, size=(6, 5, channels)).astype(np.uint16)
+    if channels in (2, 4):
+        codes[..., -1] = 65535
+        codes[0, 0, -1] = 0  # one transparent pixel: not valid
+    png16(tmp_path / "sky16.png", codes)
+    arr = read_png16(str(tmp_path / "sky16.png"))
+    assert arr.dtype == np.uint16 and np.array_equal(arr, codes[..., 0] if channels == 1 else codes)
+    if channels >= 3:
         obs = load_ldr_photo(tmp_path / "sky16.png")
         assert obs.bit_depth == 16
-        assert_close(obs.rgb, torch.tensor(colour.cctf_decoding(codes / 65535, function="sRGB"), dtype=F64), atol=1e-12, rtol=0)
-    else:
-        with pytest.raises(ValueError, match=r"sky16\.png: a 16-bit RGB PNG .* 16-bit TIFF"):
-            load_ldr_photo(tmp_path / "sky16.png")
+        assert_close(obs.rgb, torch.tensor(colour.cctf_decoding(codes[..., :3] / 65535, function="sRGB"), dtype=F64),
+                     atol=1e-12, rtol=0)
+        assert bool(obs.valid[0, 0]) == (channels == 3)
+
+
+def test_broken_16bit_png_is_one_line(tmp_path):
+    codes = np.zeros((6, 5, 3), np.uint16)
+    png16(tmp_path / "cut.png", codes)
+    data = (tmp_path / "cut.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[:60])
+    with pytest.raises(ValueError, match=r"cut\.png: cannot read the 16-bit PNG") as e:
+        load_ldr_photo(tmp_path / "cut.png")
+    assert "\n" not in str(e.value)
 
 
 def test_load_jpeg_and_alpha(tmp_path):

@@ -84,7 +84,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..camera.photo_io import DEFAULT_BLACK_LEVEL, DEFAULT_CLIP_LEVEL, png_bit_depth
+from ..camera.photo_io import DEFAULT_BLACK_LEVEL, DEFAULT_CLIP_LEVEL, png_bit_depth, read_png16
 from ..camera.response import (
     ResponseError,
     TabulatedResponse,
@@ -428,6 +428,11 @@ def _kind(ext: str) -> str:
 
 
 def _read_ldr_array(path: str, kind: str) -> np.ndarray:
+    if kind == "png" and png_bit_depth(path) == 16:
+        try:
+            return read_png16(path)  # Pillow would give 8 bits of a 16-bit RGB PNG
+        except ValueError as e:  # its message names the file already
+            raise PhotoError(str(e)) from None
     try:
         if kind == "tiff":
             import tifffile  # imageio's TIFF plugin returns every page stacked: read the first page only
@@ -439,11 +444,7 @@ def _read_ldr_array(path: str, kind: str) -> np.ndarray:
             arr = iio.imread(path, index=0, plugin="pillow")  # not the legacy plugins imageio would also try
     except Exception as e:  # noqa: BLE001 - reader errors vary by plugin
         raise PhotoError(f"photo {path}: cannot read the image ({_one_line(e)})") from None
-    arr = np.asarray(arr)
-    if kind == "png" and arr.dtype == np.uint8 and png_bit_depth(path) == 16:
-        raise PhotoError(f"photo {path}: a 16-bit RGB PNG that the installed reader (Pillow) decodes to 8 bits only; "
-                         "save it as a 16-bit TIFF instead")
-    return arr
+    return np.asarray(arr)
 
 
 def _check_channels(path: str, arr: np.ndarray) -> bool:
