@@ -36,21 +36,27 @@ def grey_jpeg(src: Path, dst: Path) -> None:
     Image.fromarray(np.round(enc * 255).astype(np.uint8), mode="L").save(dst, quality=90, **({"exif": exif} if exif else {}))
 
 
+def reencode_case(case: Path, out: Path, write_frame) -> int:
+    """Write every frame of a suite case (``photo.jpg`` or ``bracket/*.jpg``) through ``write_frame(src, dst)`` and copy
+    its truth, mask and the suite's manifest; the number of frames."""
+    frames = [case / "photo.jpg"] if (case / "photo.jpg").exists() else sorted((case / "bracket").glob("*.jpg"))
+    for f in frames:
+        write_frame(f, out / f.relative_to(case))
+    for name in ("truth.json", "mask_truth.png"):
+        if (case / name).exists():
+            shutil.copy(case / name, out / name)
+    if (case.parent / "suite.json").exists():  # scripts/photo_study.py then reads the new suite, not making its own
+        shutil.copy(case.parent / "suite.json", out.parent / "suite.json")
+    return len(frames)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("case", help="a case folder of the suite (photo.jpg or bracket/, truth.json, mask_truth.png)")
     ap.add_argument("out", help="folder to write the grey photo.jpg or bracket/, truth.json and mask_truth.png")
     a = ap.parse_args(argv)
-    case, out = Path(a.case), Path(a.out)
-    frames = [case / "photo.jpg"] if (case / "photo.jpg").exists() else sorted((case / "bracket").glob("*.jpg"))
-    for f in frames:
-        grey_jpeg(f, out / f.relative_to(case))
-    for name in ("truth.json", "mask_truth.png"):
-        if (case / name).exists():
-            shutil.copy(case / name, out / name)
-    if (case.parent / "suite.json").exists():  # scripts/photo_study.py then reads the grey suite, not making its own
-        shutil.copy(case.parent / "suite.json", out.parent / "suite.json")
-    print(f"{out}: {len(frames)} grey frame(s)")
+    n = reencode_case(Path(a.case), Path(a.out), grey_jpeg)
+    print(f"{a.out}: {n} grey frame(s)")
     return 0
 
 

@@ -228,14 +228,15 @@ def parse_icc(data: bytes) -> IccProfile | None:
     return IccProfile(desc, curves, colorants)
 
 
-def icc_sensitivities(profile: IccProfile) -> tuple[np.ndarray, np.ndarray]:
-    """Spectral sensitivities (wavelengths [nm] (K,), curves (K, 3)) of a profile's linear RGB: 683 times the CIE
-    1931 colour-matching functions through :meth:`IccProfile.rgb_from_xyz`, as the default camera is the CIE observer
-    through sRGB's matrix (:func:`skyfit.fit.model.channel_matrix`)."""
+def icc_sensitivities(rgb_from_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Spectral sensitivities (wavelengths [nm] (K,), curves (K, 3)) of a profile's linear RGB: 683 lm/W times the
+    CIE 1931 colour-matching functions through its :meth:`IccProfile.rgb_from_xyz`, as the default camera is the CIE
+    observer through sRGB's matrix (:func:`skyfit.fit.model.channel_matrix`)."""
+    from ..atmosphere.constants import LUMINOUS_EFFICACY_LM_PER_W
     from ..render.colour import _cmfs
 
     wl, cmf = _cmfs()
-    return wl, 683.0 * cmf @ profile.rgb_from_xyz().T
+    return wl, LUMINOUS_EFFICACY_LM_PER_W * cmf @ np.asarray(rgb_from_xyz, np.float64).T
 
 
 

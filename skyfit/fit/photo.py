@@ -47,6 +47,7 @@ from ..atmosphere.constants import PRESSURE_SCALE_HEIGHT_M
 from ..camera.autocal import (SRGB_LUMA, CalibrationError, CameraGuess, Circle, SunDetection, cameras_from_sun,
                               detect_circle, detect_sun, symmetry_axis)
 from ..camera.fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, theta_to_rho, zenith_azimuth_to_enu
+from ..camera.icc import icc_sensitivities
 from ..camera.masks import SUN_MASK_MAX_DEG, grow_outlier_mask, obstacle_mask, sun_mask
 from ..camera.sun import parse_location, parse_time, sun_position
 from ..io.photo import LinearPhoto, block_view, read_photo, reduced_photo
@@ -959,6 +960,9 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     elif camera_meta and camera_meta.get("spectral_sensitivities"):
         response = read_sensitivities(camera_meta["spectral_sensitivities"])
         check_sensitivities(response[1], False, camera_meta["spectral_sensitivities"], scene.photo.source)
+    elif (scene.photo.meta.get("icc") or {}).get("rgb_from_xyz") is not None:
+        # a photo in another RGB space (Display P3, Adobe RGB): the CIE observer through its primaries
+        response = icc_sensitivities(scene.photo.meta["icc"]["rgb_from_xyz"])
     timings = dict(scene.seconds)
 
     shared: dict = {}  # Bruneton tables at the starting atmosphere, shared by the short fits (camera-independent)

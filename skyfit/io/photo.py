@@ -92,6 +92,7 @@ from ..camera.response import (
     robertson_response,
     table_response,
 )
+from ..camera.icc import SRGB_TOLERANCE as ICC_SRGB_TOLERANCE, IccError, IccProfile, parse_icc
 from ..camera.srgb import srgb_decode, srgb_encode_slope
 from .atomic import write_text_atomic
 from .exr import ExrError, read_exr
@@ -402,6 +403,8 @@ class _Frame:
     black_code: float | None = None
     info: dict = dataclasses.field(default_factory=dict)
     mono: bool = False                        # a grey image: its one channel in all three of ``codes``
+    icc: IccProfile | None = None             # the embedded matrix/TRC profile, if any
+    icc_problem: str | None = None            # why an embedded profile is not used
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -554,7 +557,77 @@ def _read_frame(path: str, kind: str) -> _Frame:
     if kind == "tiff" and arr.dtype.kind == "f":
         raise PhotoError(f"photo {path}: a floating-point TIFF is not read as a photo frame; "
                          "save linear HDR data as EXR or Radiance .hdr")
-    return _ldr_frame(path, kind, arr, exif)
+    frame = _ldr_frame(path, kind, arr, exif)
+    frame.icc, frame.icc_problem = _embedded_icc(path, kind, frame.mono)
+    return frame
+
+
+def _embedded_icc(path: str, kind: str, mono: bool) -> tuple[IccProfile | None, str | None]:
+    """The photo's embedded ICC profile (Pillow's ``icc_profile`` of a JPEG or PNG, a TIFF's InterColorProfile tag
+    34675), and why it is not used where it cannot be: (None, None) without one."""
+    try:
+        if kind == "tiff":
+            import tifffile
+
+            with tifffile.TiffFile(path) as tf:
+                tag = tf.pages[0].tags.get(34675)
+                data = None if tag is None else bytes(tag.value)
+        else:
+            from PIL import Image
+
+            with Image.open(path) as im:
+                data = im.info.get("icc_profile")
+    except Exception:  # noqa: BLE001 - the pixels were read; a profile the reader cannot reach is as none
+        return None, None
+    if not data:
+        return None, None
+    try:
+        prof = parse_icc(bytes(data))
+    except IccError as e:
+        return None, f"its ICC profile cannot be read ({e}); read as sRGB"
+    if prof is None:
+        return None, "its ICC profile is not a matrix/TRC profile (lookup tables are not read); read as sRGB"
+    if prof.grey != mono:
+        return None, (f"its ICC profile {prof.description!r} is for {'grey' if prof.grey else 'colour'} images, the "
+                      f"image is {'grey' if mono else 'colour'}; read as sRGB")
+    return prof, None
+
+
+def _icc_response(prof: IccProfile) -> _Response:
+    """The decoding of a profile's tone curves: sRGB's, a power law, linear, or a table of 4097 codes."""
+    c = np.linspace(0.0, 1.0, 4097)
+    curves = prof.curves if not prof.same_curves() else prof.curves[:1]
+    values = np.stack([k(c) for k in curves], 1)
+    if values.shape[1] == 1:
+        if np.max(np.abs(values[:, 0] - srgb_decode(torch.from_numpy(c)).numpy())) < ICC_SRGB_TOLERANCE:
+            return _Response("srgb")
+        if np.max(np.abs(values[:, 0] - c)) < ICC_SRGB_TOLERANCE:
+            return _Response("linear")
+        g = curves[0].gamma
+        if g is not None:
+            return _Response(_gamma_name(g), g)
+    top = values[-1]
+    if not (top > 0).all():
+        return _Response("srgb")
+    tab = table_response(c, np.maximum.accumulate(np.maximum(values, 0.0), axis=0) / top,
+                         info={"icc_profile": prof.description})
+    return _Response(f"icc:{prof.description or 'embedded'}", table=tab)
+
+
+def _icc_meta(frame: _Frame, how: str, notes: list[str]) -> dict:
+    """RESULT.json's ``photo.icc`` and a note, for a frame with an embedded profile (empty without one)."""
+    if frame.icc_problem:
+        notes.append(frame.icc_problem)
+    prof = frame.icc
+    if prof is None:
+        return {}
+    srgb = prof.is_srgb()
+    out = {"description": prof.description, "srgb": srgb,
+           "rgb_from_xyz": None if prof.grey or srgb else prof.rgb_from_xyz().tolist()}
+    if not srgb:
+        colour = "" if prof.grey else "; its primaries give the channels' colour (the fit's default camera)"
+        notes.append(f"the photo carries the ICC profile {prof.description or '(unnamed)'!r}, not sRGB: {how}{colour}")
+    return {"icc": out}
 
 
 # --------------------------------------------------------------------------
@@ -927,6 +1000,8 @@ def _read_single(path: str, kind: str, linear: bool, exposures, response) -> Lin
         source = "--linear" if linear else "default"
     elif req is None:
         resp = _Response("srgb")
+        if frame.icc is not None and not frame.icc.is_srgb():
+            resp, source = _icc_response(frame.icc), "icc"
     elif req == "estimate":
         resp, source = _Response("srgb"), "default"
         notes.append("one frame cannot tell its camera response; assumed sRGB")
@@ -946,6 +1021,8 @@ def _read_single(path: str, kind: str, linear: bool, exposures, response) -> Lin
     meta = _base_meta(kind, frame.bit_depth, ex, frame.mono)
     meta.update({"response": resp.name, "response_source": source,
                  "frames": _frame_list_meta([frame], [e], [esrc]), "noise": _noise_meta([frame])})
+    meta.update(_icc_meta(frame, "its tone curves decode the codes" if source == "icc" else
+                          f"the codes are decoded as {resp.name} ({source})", notes))
     if resp.table is not None:
         meta["response_curve"] = resp.table.curve()
     if frame.kind == "raw":
@@ -1132,6 +1209,9 @@ def _read_bracket(folder: str, linear: bool, exposures, response) -> LinearPhoto
     meta.update({"frame_format": kinds[0], "response": resp.name, "response_source": source,
                  "frames": _frame_list_meta(frames, rel_exp, esrc), "noise": _noise_meta(frames),
                  "darkest_frame": files[order[0]]})
+    # a camera's JPEG tone curve departs from its profile's, which the bracket measures: the response stays the
+    # bracket's (estimated by default); the profile's primaries still give the colour
+    meta.update(_icc_meta(first, f"the codes are decoded as {resp.name} ({source}, the bracket's own)", notes))
     if info is not None:
         meta["response_estimate"] = {k: v for k, v in info.items() if k != "scores"}
         if "scores" in info:
