@@ -593,3 +593,47 @@ def test_bad_brackets(tmp_path):
     k.mkdir()
     with pytest.raises(PhotoError, match=r"a Kider capture folder"):
         read_photo(k)
+
+
+# ----------------------------------------------------------------------------------------------
+# HEIF/HEIC (phones; pillow-heif, an optional dependency installed with the tests)
+# ----------------------------------------------------------------------------------------------
+
+def test_heic_8_and_10_bit_with_exif_and_profile(tmp_path):
+    pillow_heif = pytest.importorskip("pillow_heif")
+    from skyfit.camera.icc import profile_for
+
+    pillow_heif.register_heif_opener()
+    yy, xx = np.mgrid[0:48, 0:64]
+    lin = np.stack([0.05 + 0.5 * xx / 64, 0.1 + 0.6 * yy / 48, 0.3 + 0.0 * xx], -1)
+    codes8 = np.round(srgb_enc(lin) * 255).astype(np.uint8)
+    # lossless, 4:4:4: what comes back differs from the codes by the YCbCr rounding only (1 code)
+    Image.fromarray(codes8).save(tmp_path / "p.heic", quality=-1, chroma=444, exif=exif_for(1 / 250),
+                                 icc_profile=profile_for("Display P3"))
+    ph = read_photo(tmp_path / "p.heic")
+    m = ph.meta
+    assert m["format"] == "heif" and m["bit_depth"] == 8 and m["exposure_s"] == pytest.approx(1 / 250)
+    assert m["icc"]["description"] == "Display P3" and m["frames"][0]["exposure_source"] == "exif"
+    e = m["frames"][0]["relative_exposure"]
+    np.testing.assert_allclose(srgb_enc(ph.rgb * e) * 255, codes8, atol=1.01)
+    codes10 = np.round(srgb_enc(lin) * 1023).astype(np.uint16)
+    pillow_heif.from_bytes(mode="RGB;16", size=(64, 48), data=(codes10 << 6).tobytes()).save(
+        tmp_path / "p10.heic", quality=-1, chroma=444)
+    ph = read_photo(tmp_path / "p10.heic")
+    assert ph.meta["bit_depth"] == 10
+    np.testing.assert_allclose(srgb_enc(ph.rgb) * 1023, codes10, atol=1.01)
+
+
+def test_heic_without_pillow_heif_is_one_line(tmp_path, monkeypatch):
+    import importlib.util
+    import sys
+
+    (tmp_path / "p.heic").write_bytes(b"\0\0\0\x18ftypheic" + bytes(40))
+    if importlib.util.find_spec("pillow_heif") is not None:
+        with pytest.raises(PhotoError, match=r"p\.heic: cannot read the image") as e:
+            read_photo(tmp_path / "p.heic")
+        one_line(e)
+    monkeypatch.setitem(sys.modules, "pillow_heif", None)  # import fails as if not installed
+    with pytest.raises(PhotoError, match=r"p\.heic: reading HEIF/HEIC needs the 'pillow-heif' package") as e:
+        read_photo(tmp_path / "p.heic")
+    one_line(e)

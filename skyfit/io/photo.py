@@ -99,8 +99,10 @@ from .exr import ExrError, read_exr
 from .hdr import HdrError, read_hdr
 from .kider import is_kider_capture_name
 
-LDR_EXTENSIONS: tuple[str, ...] = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
-"""8/16-bit image files read through imageio/Pillow (JPEG, PNG) and tifffile (TIFF)."""
+LDR_EXTENSIONS: tuple[str, ...] = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".heic", ".heif", ".hif")
+"""8/16-bit image files read through imageio/Pillow (JPEG, PNG; pypng for 16-bit PNG), tifffile (TIFF) and
+pillow-heif (HEIF/HEIC of phones and cameras, 8 to 12 bits; an optional dependency, ``pip install skyfit[heic]``)."""
+HEIF_EXTENSIONS: tuple[str, ...] = (".heic", ".heif", ".hif")
 RAW_EXTENSIONS: tuple[str, ...] = (
     ".dng", ".cr2", ".cr3", ".crw", ".nef", ".nrw", ".arw", ".srf", ".sr2", ".orf", ".rw2", ".raf",
     ".pef", ".srw", ".x3f", ".3fr", ".fff", ".iiq", ".mos", ".mrw", ".erf", ".kdc", ".dcr", ".rwl", ".raw",
@@ -169,7 +171,7 @@ class LinearPhoto:
             (H, W, 3), float64, same units as ``rgb``; clipped channels at their clipped value. [relative]
         darkest_saturated: any channel clipped in that darkest frame, shape (H, W), bool.
         source: the path read.
-        meta: JSON-ready facts: ``format`` ("jpeg", "png", "tiff", "raw", "hdr", "exr", "bracket"),
+        meta: JSON-ready facts: ``format`` ("jpeg", "png", "tiff", "heif", "raw", "hdr", "exr", "bracket"),
             ``bit_depth``, ``response`` ("srgb", "linear", "gamma:G", "debevec", "robertson", "table:PATH"),
             ``response_source`` ("default", "--linear", "given", "estimated", "calibrated"), ``response_curve``
             (a tabulated response at 17 codes per channel, :meth:`TabulatedResponse.curve`), ``response_calibration``
@@ -339,6 +341,11 @@ def exif_tags(path: str | Path) -> dict:
     level = xlog.level
     xlog.setLevel(logging.ERROR)  # exifread warns "file does not have exif data" for every plain PNG
     try:
+        if os.path.splitext(str(path))[1].lower() in HEIF_EXTENSIONS:
+            import io  # exifread does not find the EXIF item of a HEIF file; pillow-heif hands it over
+
+            exif = _heif_extras(str(path))[0]
+            return exifread.process_file(io.BytesIO(exif), details=False) if exif else {}
         with open(path, "rb") as f:
             return exifread.process_file(f, details=False)
     except Exception:  # noqa: BLE001 - EXIF is optional: a file exifread cannot parse simply has none
@@ -388,7 +395,7 @@ class _Frame:
     """One LDR or RAW frame: integer codes and what they mean."""
 
     path: str
-    kind: str                  # "jpeg", "png", "tiff", "raw"
+    kind: str                  # "jpeg", "png", "tiff", "heif", "raw"
     codes: np.ndarray          # (H, W, 3) uint8/uint16
     max_code: int              # code of full scale
     levels: float              # quantisation steps per full scale
@@ -423,11 +430,45 @@ def _kind(ext: str) -> str:
         return "png"
     if ext in (".tif", ".tiff"):
         return "tiff"
+    if ext in HEIF_EXTENSIONS:
+        return "heif"
     if ext in RAW_EXTENSIONS:
         return "raw"
     if ext in HDR_EXTENSIONS:
         return "hdr"
     return "exr"
+
+
+def _open_heif(path: str, **kw):
+    try:
+        import pillow_heif
+    except ImportError:  # optional: its wheels bundle an HEVC decoder
+        raise PhotoError(f"photo {path}: reading HEIF/HEIC needs the 'pillow-heif' package "
+                         "(pip install 'skyfit[heic]'), or save the photo as JPEG or 16-bit TIFF") from None
+    try:
+        return pillow_heif.open_heif(path, **kw)
+    except Exception as e:  # noqa: BLE001 - libheif's errors vary
+        raise PhotoError(f"photo {path}: cannot read the image ({_one_line(e)})") from None
+
+
+def _read_heif(path: str) -> tuple[np.ndarray, int]:
+    """A HEIF/HEIC image's codes and bit depth: 8-bit as uint8; 10 or 12 bits (phones' HDR, Fuji's .hif) as uint16
+    codes on their own scale (pillow-heif shifts them to the top bits; shifted back here)."""
+    f = _open_heif(path, convert_hdr_to_8bit=False)
+    bits = int(f.info.get("bit_depth") or 8)
+    arr = np.asarray(f)
+    if arr.dtype == np.uint16 and 8 < bits < 16:
+        arr = arr >> (16 - bits)
+    return arr, bits
+
+
+def _heif_extras(path: str) -> tuple[bytes | None, bytes | None]:
+    """(EXIF bytes (TIFF-structured), ICC profile bytes) of a HEIF file's primary image, as pillow-heif gives them."""
+    f = _open_heif(path)
+    exif = f.info.get("exif")
+    if exif and exif[:6] == b"Exif\0\0":
+        exif = exif[6:]
+    return exif or None, f.info.get("icc_profile") or None
 
 
 def _read_ldr_array(path: str, kind: str) -> np.ndarray:
@@ -468,11 +509,14 @@ def _as_rgba(arr: np.ndarray) -> np.ndarray:
     return np.concatenate([np.repeat(g[..., :1], 3, -1), g[..., 1:]], -1)
 
 
-def _ldr_frame(path: str, kind: str, arr: np.ndarray, exif: dict) -> _Frame:
+def _ldr_frame(path: str, kind: str, arr: np.ndarray, exif: dict, bits: int | None = None) -> _Frame:
+    """A frame of integer codes; ``bits``: their depth where the type's is wider (10- or 12-bit HEIF in uint16)."""
     mono = _check_channels(path, arr)
     if mono:
         arr = _as_rgba(arr)
-    if arr.dtype == np.uint8:
+    if bits is not None and arr.dtype == np.uint16 and 8 < bits <= 16:
+        pass
+    elif arr.dtype == np.uint8:
         bits = 8
     elif arr.dtype == np.uint16:
         bits = 16
@@ -485,7 +529,7 @@ def _ldr_frame(path: str, kind: str, arr: np.ndarray, exif: dict) -> _Frame:
     high = codes >= DEFAULT_CLIP_LEVEL * max_code - 1e-6
     low = codes <= DEFAULT_BLACK_LEVEL * max_code + 1e-6
     return _Frame(path=path, kind=kind, codes=codes, max_code=max_code, levels=float(max_code),
-                  code_noise=JPEG_CODE_NOISE if kind == "jpeg" else 0.0, bit_depth=bits,
+                  code_noise=JPEG_CODE_NOISE if kind in ("jpeg", "heif") else 0.0, bit_depth=bits,
                   high=high, low=low, valid=valid, exif=exif,
                   clip_code=DEFAULT_CLIP_LEVEL, black_code=DEFAULT_BLACK_LEVEL, mono=mono)
 
@@ -553,11 +597,11 @@ def _read_frame(path: str, kind: str) -> _Frame:
     exif = _read_exif(path)
     if kind == "raw":
         return _raw_frame(path, exif)
-    arr = _read_ldr_array(path, kind)
+    arr, bits = _read_heif(path) if kind == "heif" else (_read_ldr_array(path, kind), None)
     if kind == "tiff" and arr.dtype.kind == "f":
         raise PhotoError(f"photo {path}: a floating-point TIFF is not read as a photo frame; "
                          "save linear HDR data as EXR or Radiance .hdr")
-    frame = _ldr_frame(path, kind, arr, exif)
+    frame = _ldr_frame(path, kind, arr, exif, bits)
     frame.icc, frame.icc_problem = _embedded_icc(path, kind, frame.mono)
     return frame
 
@@ -572,6 +616,8 @@ def _embedded_icc(path: str, kind: str, mono: bool) -> tuple[IccProfile | None, 
             with tifffile.TiffFile(path) as tf:
                 tag = tf.pages[0].tags.get(34675)
                 data = None if tag is None else bytes(tag.value)
+        elif kind == "heif":
+            data = _heif_extras(path)[1]
         else:
             from PIL import Image
 
