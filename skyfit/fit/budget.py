@@ -335,12 +335,7 @@ def reference_polish(problem: FitProblem, reference: FitProblem, x_start: Tensor
         with torch.no_grad():
             preds = reference.predict(x)
             phys = reference.param.to_physical(x)
-        out = []
-        for i, (m, o) in enumerate(zip(preds, reference.observations)):
-            sig = o.sigma[o.mask] * phys_noise_scale(reference, phys, i)
-            r = reference.loss.residuals(m, o.values[o.mask], sig)
-            out.append(r[_uncensored(reference, i, m)].reshape(-1))
-        return torch.cat(out).to(torch.float64)
+        return torch.cat(whitened_residuals(reference, preds, phys)).to(torch.float64)
 
     r = resid(z)
     loss_start = 0.5 * float((r**2).mean())
@@ -390,19 +385,24 @@ def nonlinearity(problem: FitProblem, x: Tensor, dx: Tensor, eps: float = 1e-3) 
     return math.sqrt(num / den) if den > 0 else 0.0
 
 
-def chi2_with_floor(problem: FitProblem, preds, floor: float, phys: dict) -> tuple[float, int]:
-    """(sum of squared residuals, n) over the uncensored used elements of the model ``preds`` (list of (N_i, C_i))
-    with sigma'^2 = sigma^2 + (floor m)^2; sigma is the data's times the ``noise_scale`` of ``phys``
-    (:meth:`Parameterisation.to_physical` at the fit)."""
-    total, n = 0.0, 0
+def whitened_residuals(problem: FitProblem, preds, phys: dict, floor: float = 0.0) -> list[Tensor]:
+    """The loss's residuals of the model ``preds`` (list of (N_i, C_i)) over each observation's uncensored used
+    elements, flattened, with sigma'^2 = sigma^2 + (floor m)^2; sigma is the data's times the ``noise_scale`` of
+    ``phys`` (:meth:`Parameterisation.to_physical` at the fit)."""
+    out = []
     for i, (m, o) in enumerate(zip(preds, problem.observations)):
         s = o.sigma[o.mask] * phys_noise_scale(problem, phys, i)
-        keep = _uncensored(problem, i, m)
-        sp = torch.sqrt(s**2 + (floor * m) ** 2)
+        sp = torch.sqrt(s**2 + (floor * m) ** 2) if floor else s
         r = problem.loss.residuals(m, o.values[o.mask], sp)
-        total += float((r[keep] ** 2).sum())
-        n += int(keep.sum())
-    return total, n
+        out.append(r[_uncensored(problem, i, m)].reshape(-1))
+    return out
+
+
+def chi2_with_floor(problem: FitProblem, preds, floor: float, phys: dict) -> tuple[float, int]:
+    """(sum of squared residuals, n) over the uncensored used elements of the model ``preds`` with the relative
+    floor (:func:`whitened_residuals`)."""
+    rs = whitened_residuals(problem, preds, phys, floor)
+    return sum(float((r**2).sum()) for r in rs), sum(int(r.numel()) for r in rs)
 
 
 def phys_noise_scale(problem: FitProblem, phys: dict, i: int) -> float:
