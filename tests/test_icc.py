@@ -17,22 +17,13 @@ import torch
 from PIL import Image, ImageCms
 
 from _png import png16
+from test_photo_read import srgb_dec, srgb_enc  # IEC 61966-2-1 in numpy
 
 from skyfit.camera.icc import (Curve, IccError, build_icc, icc_sensitivities, parse_icc, profile_for,
                                srgb_colorants)
 from skyfit.camera.sensor import spectral_response_matrix
 from skyfit.fit.model import channel_matrix
 from skyfit.io.photo import read_photo
-
-
-def srgb_dec(v):
-    v = np.asarray(v, np.float64)
-    return np.where(v <= 0.04045, v / 12.92, ((np.maximum(v, 0.04045) + 0.055) / 1.055) ** 2.4)
-
-
-def srgb_enc(x):
-    x = np.asarray(x, np.float64)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.maximum(x, 0.0031308) ** (1 / 2.4) - 0.055)
 
 
 def lcms(data: bytes):
