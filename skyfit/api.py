@@ -375,7 +375,7 @@ class PhotoResult(FitResult):
         return report_png(self.photo_fit, path)
 
 
-def fit_photo(photo, *, time: str, location, config: str | Path | dict = "earth", camera=None, mask=None,
+def fit_photo(photo, *, time: str | None = None, location=None, config: str | Path | dict = "earth", camera=None, mask=None,
               exposures: Sequence[float] | None = None, linear: bool = False, response: str | None = None,
               free: Sequence[str] | None = None, laplace: bool = True, progress: bool = False, device: str = "cpu",
               **settings) -> PhotoResult:
@@ -384,8 +384,8 @@ def fit_photo(photo, *, time: str, location, config: str | Path | dict = "earth"
     Args:
         photo: a JPEG/PNG/TIFF, camera RAW, Radiance .hdr or EXR path, a folder of one scene's bracketed
             exposures, or a :class:`skyfit.io.photo.LinearPhoto` in memory.
-        time: ISO 8601 with its UTC offset (or a zone name).
-        location: "LAT,LON[,ELEV]" or (lat, lon[, elev]). [deg, deg, m]
+        time: ISO 8601 with its UTC offset (or a zone name); None: EXIF DateTimeOriginal with its OffsetTimeOriginal.
+        location: "LAT,LON[,ELEV]" or (lat, lon[, elev]) [deg, deg, m]; None: the EXIF GPS position.
         config: the atmosphere to start from (a shipped name, a YAML path or a dict).
         camera: a FisheyeCamera, a CAMERA.yaml path or its dict; None: estimated from the image and the sun.
         mask: (H, W) bool, True = ignore, added to the automatic masks.

@@ -55,7 +55,9 @@ from .fit.results import check_result, save_result
 from .fit.run import run_fit
 from .io.atomic import atomic_path, check_writable, write_text_atomic
 from .io.kider import is_kider_capture_name
-from .io.photo import EXR_EXTENSIONS, HDR_EXTENSIONS, PHOTO_EXTENSIONS, exif_tags, is_photo_path
+from .io.photo import EXIF_OFFSET as _OFFSET
+from .io.photo import (EXR_EXTENSIONS, HDR_EXTENSIONS, PHOTO_EXTENSIONS, exif_location, exif_stamps, exif_time,
+                       is_photo_path)
 
 RESULT_NAME = "RESULT.json"
 TABLE_NAMES = ("results.parquet", "results.csv")
@@ -210,41 +212,6 @@ def batch_items(items: str | Path | Sequence[str | Path]) -> list[BatchItem]:
 
 
 # -- a photo's time ---------------------------------------------------------------------------------------
-_EXIF_FORMAT = "%Y:%m:%d %H:%M:%S"
-_OFFSET = re.compile(r"^([+-])(\d{2}):?(\d{2})$")
-
-
-def exif_time(path: str | Path) -> tuple[_dt.datetime | None, str | None]:
-    """(EXIF DateTimeOriginal as a naive local datetime, OffsetTimeOriginal as ``+HH:MM``) of an image file.
-
-    DateTimeOriginal (tag 36867; else DateTimeDigitized, else the IFD0 DateTime) with SubSecTimeOriginal when
-    present; the offset from OffsetTimeOriginal (tag 36881; EXIF 2.31), else OffsetTime. (None, None) when the
-    file has no EXIF or no readable time (``0000:00:00 00:00:00`` and blanks count as none)."""
-    tags = exif_tags(path)
-
-    def text(*names) -> str | None:
-        for n in names:
-            if n in tags:
-                v = str(getattr(tags[n], "printable", tags[n])).strip().strip("\x00").strip()
-                if v:
-                    return v
-        return None
-
-    stamp = text("EXIF DateTimeOriginal", "EXIF DateTimeDigitized", "Image DateTime")
-    when = None
-    if stamp is not None:
-        try:
-            when = _dt.datetime.strptime(stamp[:19], _EXIF_FORMAT)
-        except ValueError:
-            when = None
-        sub = text("EXIF SubSecTimeOriginal")
-        if when is not None and sub and sub.isdigit():
-            when = when + _dt.timedelta(seconds=float("0." + sub))
-    offset = text("EXIF OffsetTimeOriginal", "EXIF OffsetTime")
-    m = _OFFSET.match(offset or "")
-    return when, (f"{m.group(1)}{m.group(2)}:{m.group(3)}" if m else None)
-
-
 def check_photo_timezone(zone: str | None) -> str | None:
     """``zone`` when it is a UTC offset (``+02:00``, ``-0400``, ``Z``, hours as ``-4`` or ``5.5``) or an IANA
     time zone name (``Europe/Berlin``); BatchError otherwise."""
@@ -326,9 +293,7 @@ def photo_time(item: BatchItem, times: dict[str, str] | None = None, zone: str |
                     raise ValueError(f"{label}: its time {row!r} in --times has no UTC offset; give one, or "
                                      "--photo-timezone") from None
                 return local_time(row, zone).isoformat(), "times"
-        files = [Path(item.path)] if item.kind == "photo" else [q for q in _entries(Path(item.path)) if q.is_file()]
-        stamps = [exif_time(q) for q in files]
-        stamps = [s for s in stamps if s[0] is not None]
+        stamps = exif_stamps(item.path)
         if not stamps:
             raise ValueError(f"{label}: no time: no EXIF DateTimeOriginal, and no row in --times")
         when, offset = min(stamps, key=lambda s: s[0])
@@ -1022,7 +987,8 @@ def batch(items, config: str | Path | dict | None = None, *, out: str | Path | N
             order, unlike ``skyfit fit`` one by one; RESULT.json's ``settings.initial`` records the start.
         dashboard_address: of the LocalCluster (None: no dashboard).
         log: called with the dashboard address and progress notes (None: silent).
-        location: a photo's place, "LAT,LON[,ELEV]" or (lat, lon[, elev]); required when there are photos.
+        location: a photo's place, "LAT,LON[,ELEV]" or (lat, lon[, elev]); None: each photo's EXIF GPS position (a
+            photo without one fails; a batch of photos none of which has one is refused).
         times: a times CSV (``file,time`` rows, :func:`read_times`) or its dict; a photo's row wins over EXIF.
         photo_timezone: the zone of photo times without a UTC offset (EXIF DateTimeOriginal without
             OffsetTimeOriginal, naive rows of ``times``): ``+02:00``, hours (``-4``) or an IANA name.
@@ -1138,13 +1104,18 @@ def _photo_arguments(photos, cfg, overrides, location, times, zone, camera, mask
         return {}, {}
     from .fit.photo import photo_settings, read_camera  # only a batch with photos needs the photo fit's imports
 
-    if location is None:
-        raise BatchError(f"photo {photos[0].path}: give --location LAT,LON[,ELEV] (the place of the photos)")
-    try:
-        lat, lon, elev = parse_location(location) if isinstance(location, str) else \
-            (tuple(float(v) for v in location) + (0.0,))[:3]
-    except (TypeError, ValueError) as e:
-        raise BatchError(f"--location {location}: {one_line(e)}") from None
+    gps = {}
+    if location is None:  # each photo's EXIF GPS position; a batch where none has one is refused as a whole
+        gps = {it.key: exif_location(it.path) for it in photos}
+        if all(g is None for g in gps.values()):
+            raise BatchError(f"photo {photos[0].path}: give --location LAT,LON[,ELEV] (the place of the photos; "
+                             "none has an EXIF GPS position)")
+    else:
+        try:
+            lat, lon, elev = parse_location(location) if isinstance(location, str) else \
+                (tuple(float(v) for v in location) + (0.0,))[:3]
+        except (TypeError, ValueError) as e:
+            raise BatchError(f"--location {location}: {one_line(e)}") from None
     zone = check_photo_timezone(zone)
     table = read_times(times) if isinstance(times, (str, Path)) else (
         {str(Path(k).absolute()): str(v) for k, v in times.items()} if times else None)
@@ -1162,6 +1133,11 @@ def _photo_arguments(photos, cfg, overrides, location, times, zone, camera, mask
         except ValueError as e:
             fail[it.key] = one_line(e)
             continue
+        if location is None:
+            if gps[it.key] is None:
+                fail[it.key] = f"photo {it.path}: no place: no EXIF GPS position, and no --location"
+                continue
+            lat, lon, elev = gps[it.key][0], gps[it.key][1], gps[it.key][2] or 0.0
         args[it.key] = {"time": when, "time_source": source, "location": f"{lat},{lon},{elev}", "camera": cam,
                         "mask": None if mask is None else str(Path(mask).expanduser()), "linear": linear,
                         "response": response}

@@ -355,8 +355,6 @@ def _drop_orphan_png(png, had: bool, out) -> None:
 def cmd_fit_photo(args) -> int:
     from .fit.photo import run_photo_fit
 
-    if args.time is None or args.location is None:
-        raise UserError(f"photo {args.data[0]}: give --time (ISO 8601 with its UTC offset) and --location LAT,LON[,ELEV]")
     if args.select:
         raise UserError("--select applies to EXR and Kider data, not photos")
     cfg, source = read_config(args.config or "earth")
@@ -449,8 +447,6 @@ def cmd_evaluate(args) -> int:
     if _photo_input(args.data):
         from .fit.photo import evaluate_photo
 
-        if args.time is None or args.location is None:
-            raise UserError(f"photo {args.data[0]}: give --time (ISO 8601 with its UTC offset) and --location LAT,LON[,ELEV]")
         refit = ["exposure"] + (["sun_azimuth_offset", "gain_red", "gain_blue"] if args.refit_nuisance else [])
         with _photo_named(args.data[0]):
             res = evaluate_photo(read_result(args.result), args.data[0], time=args.time, location=args.location, refit=refit,
@@ -561,8 +557,8 @@ def _add_fit_options(p, D) -> None:
     p.add_argument("--sigma-phase", dest="sigma_phase", action="store_true", default=None,
                    help="--sigma total: add the phase term, the spread and shift of a two-term Henyey-Greenstein refit "
                         "(one-term HG fits with g free; one more fit; docs/uncertainty.md, \"The phase term\")")
-    p.add_argument("--location", help="LAT,LON[,ELEV] [deg, deg, m]: a photo's place (required), Kider data's site "
-                   "(default: the Kider site)")
+    p.add_argument("--location", help="LAT,LON[,ELEV] [deg, deg, m]: a photo's place (default: its EXIF GPS position), "
+                   "Kider data's site (default: the Kider site)")
     p.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
 
 
@@ -579,7 +575,7 @@ def _add_sun_flags(p) -> None:
 def _add_photo_options(p) -> None:
     """The flags of a photo (``fit PHOTO``; ``evaluate RESULT PHOTO`` takes --time and --location)."""
     p.add_argument("--time", help="photo: when it was taken, ISO 8601 with its UTC offset or a zone name "
-                   "(2024-06-01T14:05:00+02:00)")
+                   "(2024-06-01T14:05:00+02:00); default: EXIF DateTimeOriginal with its OffsetTimeOriginal")
     p.add_argument("--camera", help="photo: CAMERA.yaml (projection, cx, cy, radius_px or focal_px, up_azimuth_deg, tilt_deg, "
                    "vignetting, gains, saturation_red/blue, spectral_sensitivities CSV); default: estimated from the image and the sun")
     p.add_argument("--mask", help="photo: an image of the photo's size, non-zero = ignore (added to the automatic masks)")
@@ -596,7 +592,8 @@ def _add_fit_parsers(sub) -> None:
     f = sub.add_parser("fit", help="fit an atmosphere to fisheye EXR images or Kider captures (docs/fitting.md)")
     f.add_argument("data", nargs="+", help="an .exr fisheye, a Kider capture folder, or a folder of either (several: joint fit); "
                    "or one photo: JPEG/PNG/TIFF, camera RAW, Radiance .hdr, EXR without skyfit metadata, or a folder "
-                   "of one scene's bracketed exposures (needs --time and --location; docs/photos.md)")
+                   "of one scene's bracketed exposures (with --time and --location, or EXIF DateTimeOriginal + OffsetTimeOriginal and "
+                   "GPS; docs/photos.md)")
     f.add_argument("--config", help="atmosphere config YAML with an optional fit: section (or a shipped name); "
                    "required for EXR and Kider data, default earth for a photo")
     _add_photo_options(f)
@@ -619,10 +616,11 @@ def _add_fit_parsers(sub) -> None:
     e = sub.add_parser("evaluate", help="how well a fitted atmosphere predicts DATA (its own sun position)")
     e.add_argument("result", help="RESULT.json of skyfit fit")
     e.add_argument("data", nargs="+", help="an .exr fisheye, a Kider capture folder, or a folder of either")
-    e.add_argument("--time", help="photo: when it was taken, ISO 8601 with its UTC offset or a zone name")
+    e.add_argument("--time", help="photo: when it was taken, ISO 8601 with its UTC offset or a zone name (default: EXIF "
+                   "DateTimeOriginal with its OffsetTimeOriginal)")
     e.add_argument("--refit-nuisance", action="store_true", help="re-estimate exposure and the orientation the fit modelled (sun offsets, camera tilts; default the sun azimuth and zenith offsets) on DATA, atmosphere fixed")
-    e.add_argument("--location", help="LAT,LON[,ELEV] [deg, deg, m]: a photo's place (required), Kider data's site "
-                   "(default: the Kider site)")
+    e.add_argument("--location", help="LAT,LON[,ELEV] [deg, deg, m]: a photo's place (default: its EXIF GPS position, "
+                   "else the fit's), Kider data's site (default: the Kider site)")
     e.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")
     e.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar (default: on a terminal)")
     e.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's)")

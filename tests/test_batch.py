@@ -560,3 +560,21 @@ def test_smooth_table_columns_log_aod_and_failed_items(tmp_path):
     gauss = B.smooth_table(df, {"aod_550": 0.1}, nu=None)["smooth_weight"]
     assert gauss[4] == pytest.approx(0.01, rel=1e-12) and (gauss.drop([4, 7]) == 1.0).all()
     assert B.plot_timeseries(sm, tmp_path / "ts.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_photo_places_from_exif_gps_when_no_location(tmp_path):
+    from PIL import Image
+    from _files import exif_when_where
+
+    import numpy as np
+
+    img = Image.fromarray(np.full((8, 8, 3), 120, np.uint8))
+    img.save(tmp_path / "gps.jpg", exif=exif_when_where("2024:06:01 10:00:00", "+02:00", -33.8752, 151.2014, -12.0))
+    img.save(tmp_path / "nogps.jpg", exif=exif_when_where("2024:06:01 10:05:00", "+02:00"))
+    items = {it.key: it for it in B.batch_items([tmp_path / "gps.jpg", tmp_path / "nogps.jpg"])}
+    args, fail = B._photo_arguments(list(items.values()), {}, {}, None, None, None, None, None, False, None)
+    lat, lon, elev = (float(v) for v in args[next(k for k in args)]["location"].split(","))
+    assert (lat, lon, elev) == (pytest.approx(-33.8752, abs=1e-6), pytest.approx(151.2014, abs=1e-6), -12.0)
+    assert list(fail.values()) == [f"photo {items[next(iter(fail))].path}: no place: no EXIF GPS position, and no --location"]
+    with pytest.raises(B.BatchError, match="none has an EXIF GPS position"):
+        B._photo_arguments([items[k] for k in fail], {}, {}, None, None, None, None, None, False, None)

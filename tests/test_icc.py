@@ -16,7 +16,7 @@ import tifffile
 import torch
 from PIL import Image, ImageCms
 
-from _png import png16
+from _files import png16
 from test_photo_read import srgb_dec, srgb_enc  # IEC 61966-2-1 in numpy
 
 from skyfit.camera.icc import (Curve, IccError, build_icc, icc_sensitivities, parse_icc, profile_for,

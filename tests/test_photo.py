@@ -18,7 +18,7 @@ import skimage.io
 import torch
 from torch.testing import assert_close
 
-from _png import png16
+from _files import png16
 
 from skyfit.camera import FisheyeCamera
 from skyfit.camera.likelihood import censored_gaussian_nll, fit_exposure_scale

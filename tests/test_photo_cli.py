@@ -25,6 +25,7 @@ import pytest
 import tifffile
 import torch
 from _cli import run
+from _files import exif_when_where
 from PIL import ExifTags, Image, TiffImagePlugin
 
 import skyfit
@@ -266,10 +267,37 @@ def test_evaluate_a_photo_of_another_size_is_one_line(photos, fitted, tmp_path, 
              "the camera (a photo fit's)", "96x112 px images", "b.jpg is 80x112 px")
 
 
-def test_photo_flags_need_time_and_location(photos, tmp_path, capsys):
+def test_photo_time_and_place_from_flags_or_exif(photos, tmp_path, capsys):
     _refused(["fit", photos / "sky.jpg", "--location", LOC, "--out", tmp_path / "r.json"], capsys, tmp_path,
-             "sky.jpg", "--time")
-    _refused(["evaluate", tmp_path / "r.json", photos / "sky.jpg", "--time", T1], capsys, tmp_path, "sky.jpg", "--location")
+             "sky.jpg", "no time", "--time")
+    _refused(["fit", photos / "sky.jpg", "--time", T1, "--out", tmp_path / "r.json"], capsys, tmp_path,
+             "sky.jpg", "no place", "--location", "GPS")
+    codes = np.asarray(Image.open(photos / "sky.jpg"))
+    Image.fromarray(codes).save(tmp_path / "naive.jpg", quality=95, exif=exif_when_where("2024:06:01 10:00:00", None))
+    _refused(["fit", tmp_path / "naive.jpg", "--location", LOC, "--out", tmp_path / "r.json"], capsys, tmp_path,
+             "naive.jpg", "2024-06-01T10:00:00 has no UTC offset", "OffsetTimeOriginal")
+    # a phone's photo: its time with the offset and its GPS position; nothing else given
+    lat, lon = (float(v) for v in LOC.split(","))
+    tagged = tmp_path / "tagged"
+    tagged.mkdir()
+    Image.fromarray(codes).save(tagged / "phone.jpg", quality=95,
+                                exif=exif_when_where("2024:06:01 10:00:00", "+02:00", lat, lon, 520.0))
+    out = tmp_path / "out"
+    out.mkdir()
+    rc, so, se = run(["fit", tagged / "phone.jpg", "--out", out / "r.json", "--config", photos / "cheap.yaml",
+                      "--no-progress"], capsys)
+    assert rc == 0, se
+    r = json.loads((out / "r.json").read_text())
+    assert r["time"] == T1
+    assert r["location"]["latitude_deg"] == pytest.approx(lat, abs=1e-6)
+    assert r["location"]["longitude_deg"] == pytest.approx(lon, abs=1e-6)
+    assert r["location"]["elevation_m"] == pytest.approx(520.0)
+    assert any("time from EXIF" in n for n in r["notes"]) and any("location from EXIF GPS" in n for n in r["notes"])
+    # evaluate without --location: the photo's GPS, else the fit's site
+    rc, so, se = run(["evaluate", out / "r.json", photos / "other.jpg", "--time", T2, "--json", "--no-progress"], capsys)
+    assert rc == 0, se
+    ev = json.loads(so)
+    assert ev["time"] == T2 and ev["location"] == r["location"] and any("location of the fit" in n for n in ev["notes"])
 
 
 # -- failures and Ctrl-C during a fit leave nothing ----------------------------------------------------

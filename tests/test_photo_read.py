@@ -13,7 +13,7 @@ import pytest
 import tifffile
 from PIL import Image, ExifTags, TiffImagePlugin
 
-from _png import png16
+from _files import png16
 
 from skyfit.io import write_exr, write_hdr
 from skyfit.io.photo import PHOTO_EXTENSIONS, LinearPhoto, PhotoError, is_photo_path, read_photo

@@ -35,6 +35,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import os
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
@@ -50,7 +51,7 @@ from ..camera.fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, theta_to_rho,
 from ..camera.icc import icc_sensitivities
 from ..camera.masks import SUN_MASK_MAX_DEG, grow_outlier_mask, obstacle_mask, sun_mask
 from ..camera.sun import parse_location, parse_time, sun_position
-from ..io.photo import LinearPhoto, block_view, read_photo, reduced_photo
+from ..io.photo import LinearPhoto, block_view, exif_location, exif_stamps, read_photo, reduced_photo
 from .data import Observation
 from .model import FitProblem, aerosol_log_depth, applied_lens, lens_directions, tilt_directions
 from .optimise import fit as optimise
@@ -286,31 +287,69 @@ def mono_response(camera_meta: dict | None, source: str) -> tuple[np.ndarray, np
 
 
 # -- the scene ------------------------------------------------------------------------------------
+def time_and_place(source: str, time: str | None, location, fallback_location=None) -> tuple[str, object, list[str]]:
+    """(time, location, notes): those given, else the photo's EXIF ones: DateTimeOriginal with its OffsetTimeOriginal
+    (EXIF 2.31; a bracket's earliest frame) and the GPS position (:func:`skyfit.io.photo.exif_location`), else
+    ``fallback_location`` (``evaluate``: the fit's own site); a note for each taken so. PhotoFitError (one line) for
+    what is neither given nor in the file: a time without its UTC offset is not guessed."""
+    notes: list[str] = []
+    exists = bool(source) and os.path.exists(source)
+    if time is None:
+        stamps = exif_stamps(source) if exists else []
+        if not stamps:
+            raise PhotoFitError(f"photo {source}: no time: give --time (ISO 8601 with its UTC offset); the file's EXIF "
+                                "has no DateTimeOriginal")
+        when, offset = min(stamps, key=lambda st: st[0])
+        if offset is None:
+            raise PhotoFitError(f"photo {source}: its EXIF time {when.isoformat()} has no UTC offset (no "
+                                f"OffsetTimeOriginal); give --time with one, e.g. {when.isoformat()}+02:00")
+        time = when.isoformat() + offset
+        notes.append(f"the time from EXIF: {time} (DateTimeOriginal and OffsetTimeOriginal; a camera's clock can be off: "
+                     "check the sun's separation)")
+    if location is None:
+        loc = exif_location(source) if exists else None
+        if loc is not None:
+            lat, lon, alt = loc
+            location = (lat, lon, 0.0 if alt is None else alt)
+            notes.append(f"the location from EXIF GPS: {lat:.5f}, {lon:.5f}, "
+                         + (f"{alt:.0f} m" if alt is not None else "no altitude (0 m taken)"))
+        elif fallback_location is not None:
+            location = fallback_location
+            notes.append("the location of the fit (the photo has none in EXIF)")
+        else:
+            raise PhotoFitError(f"photo {source}: no place: give --location LAT,LON[,ELEV]; the file's EXIF has no GPS "
+                                "position")
+    return time, location, notes
+
+
 def _luminance(rgb: np.ndarray) -> np.ndarray:
     return rgb @ SRGB_LUMA
 
 
-def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camera: FisheyeCamera | dict | str | Path | None = None,
+def prepare_scene(photo: str | Path | LinearPhoto, *, time: str | None = None, location=None, camera: FisheyeCamera | dict | str | Path | None = None,
                   mask: np.ndarray | None = None, exposures: Sequence[float] | None = None, linear: bool = False,
                   response: str | None = None, projections: Sequence[str] = CLASSICAL_PROJECTIONS,
-                  sun_mask_max_deg: float | None = SUN_MASK_MAX_DEG) -> PhotoScene:
+                  sun_mask_max_deg: float | None = SUN_MASK_MAX_DEG, site=None) -> PhotoScene:
     """Read the photo, place the sun, find the camera and the masks (steps 1-4 of the module docstring).
 
     Args:
         photo: a photo path (any format of :func:`skyfit.io.photo.read_photo`, or a bracket folder) or a read photo.
-        time: ISO 8601 with a UTC offset or a zone name.
-        location: "LAT,LON[,ELEV]" or (lat, lon[, elev]). [deg, deg, m]
+        time: ISO 8601 with a UTC offset or a zone name; None: the photo's EXIF (:func:`time_and_place`).
+        location: "LAT,LON[,ELEV]" or (lat, lon[, elev]) [deg, deg, m]; None: the photo's EXIF GPS position.
         camera: a FisheyeCamera, a camera dict (:func:`read_camera`) or CAMERA.yaml; None: from the image.
         mask: (H, W) bool, True = ignore (the user's own).
         exposures, linear, response: for :func:`read_photo`.
         projections: the candidate projections when the camera is not given.
         sun_mask_max_deg: largest radius of the sun's mask (:func:`scene_masks`). [deg]
+        site: the location when neither ``location`` nor the photo's EXIF gives one (``evaluate``: the fit's).
 
     Raises:
         PhotoFitError / PhotoError / CalibrationError (ValueErrors): one line naming the file and the problem.
     """
     seconds: dict = {}
     t0 = _now()
+    time, location, where = time_and_place(photo.source if isinstance(photo, LinearPhoto) else str(photo), time, location,
+                                           site)
     if not isinstance(photo, LinearPhoto):
         photo = read_photo(photo, linear=linear, exposures=exposures, response=response)
     src = photo.source
@@ -349,7 +388,7 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str, location, camer
     if sz >= 90.0:
         raise PhotoFitError(f"photo {src}: the sun is below the horizon at {when.isoformat()} (zenith {sz:.2f} deg); "
                             "night and twilight skies are not fitted")
-    notes = list(photo.meta.get("notes", []))
+    notes = list(photo.meta.get("notes", [])) + where
     t1 = _now()
     candidates, circle, detected = [], None, None
     inside_valid = photo.valid
@@ -1811,7 +1850,7 @@ def _in_photo_pixels(result: dict, scale: int) -> dict:
     return result
 
 
-def fit_photo(photo, *, time: str, location, config: dict, camera=None, mask=None, exposures=None, linear: bool = False,
+def fit_photo(photo, *, time: str | None = None, location=None, config: dict, camera=None, mask=None, exposures=None, linear: bool = False,
               response: str | None = None, overrides: dict | None = None, laplace: bool = True, progress: bool = False,
               device="cpu") -> PhotoFit:
     """Steps 1-7 on one photo (see the module docstring); nothing is written. ValueErrors name the file."""
@@ -1902,7 +1941,7 @@ def read_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
     return m != 0
 
 
-def run_photo_fit(photo: str | Path, config: dict, out: str | Path, *, time: str, location, camera=None, mask=None,
+def run_photo_fit(photo: str | Path, config: dict, out: str | Path, *, time: str | None = None, location=None, camera=None, mask=None,
                   exposures=None, linear: bool = False, response: str | None = None, overrides: dict | None = None,
                   plots: bool = True, progress: bool = False, laplace: bool = True, device="cpu") -> dict:
     """``skyfit fit PHOTO``: fit, then write RESULT.png and RESULT.json (each atomically; nothing on failure)."""
@@ -1929,7 +1968,7 @@ def run_photo_fit(photo: str | Path, config: dict, out: str | Path, *, time: str
     return pf.result
 
 
-def evaluate_photo(result: dict, photo, *, time: str, location, refit: Sequence[str] = ("exposure",), device="cpu",
+def evaluate_photo(result: dict, photo, *, time: str | None = None, location=None, refit: Sequence[str] = ("exposure",), device="cpu",
                    progress: bool = False) -> dict:
     """Score another photo of the same camera with a photo fit's atmosphere and camera.
 
@@ -1950,7 +1989,9 @@ def evaluate_photo(result: dict, photo, *, time: str, location, refit: Sequence[
             "wavelengths", "dtype")
     overrides = {k: settings[k] for k in keep if k in settings}
     overrides.update(free=list(refit), initial=fixed_atm)
-    scene = prepare_scene(photo, time=time, location=location, camera=cam)
+    site = result.get("location") or {}
+    site = tuple(site[k] for k in ("latitude_deg", "longitude_deg", "elevation_m")) if "latitude_deg" in site else None
+    scene = prepare_scene(photo, time=time, location=location, camera=cam, site=site)
     was_mono, is_mono = bool((result.get("photo") or {}).get("monochrome")), bool(scene.photo.meta.get("monochrome"))
     if was_mono != is_mono:
         kind = lambda m: "grey (monochrome)" if m else "colour"  # noqa: E731
@@ -1962,4 +2003,5 @@ def evaluate_photo(result: dict, photo, *, time: str, location, refit: Sequence[
     return {"rmse_rel": r["metrics"]["rmse_rel"], "rmse": r["metrics"]["rmse"], "rmse_units": r["metrics"]["rmse_units"],
             "delta_e": r["metrics"]["delta_e"], "n_samples": r["metrics"]["n_samples"], "refitted": list(refit),
             "nuisance": {n: r["parameters"][n] for n in refit}, "sun": r["sun"], "pixels": r["pixels"],
-            "photo": r["photo"].get("format"), "seconds": r["seconds"]}
+            "photo": r["photo"].get("format"), "time": r["time"], "location": r["location"], "notes": r["notes"],
+            "seconds": r["seconds"]}

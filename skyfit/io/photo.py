@@ -75,9 +75,11 @@ feeds the noise model; ``meta["response_curve"]`` holds 17 points per channel an
 from __future__ import annotations
 
 import dataclasses
+import datetime as _dt
 import logging
 import math
 import os
+import re
 from pathlib import Path
 from typing import Sequence
 
@@ -352,6 +354,88 @@ def exif_tags(path: str | Path) -> dict:
         return {}
     finally:
         xlog.setLevel(level)
+
+
+EXIF_FORMAT = "%Y:%m:%d %H:%M:%S"
+EXIF_OFFSET = re.compile(r"^([+-])(\d{2}):?(\d{2})$")
+"""An EXIF OffsetTime value (``+02:00``; ``+0200`` accepted)."""
+
+
+def _exif_text(tags: dict, *names) -> str | None:
+    for n in names:
+        if n in tags:
+            v = str(getattr(tags[n], "printable", tags[n])).strip().strip("\x00").strip()
+            if v:
+                return v
+    return None
+
+
+def exif_time(path: str | Path) -> tuple[_dt.datetime | None, str | None]:
+    """(EXIF DateTimeOriginal as a naive local datetime, OffsetTimeOriginal as ``+HH:MM``) of an image file.
+
+    DateTimeOriginal (tag 36867; else DateTimeDigitized, else the IFD0 DateTime) with SubSecTimeOriginal when
+    present; the offset from OffsetTimeOriginal (tag 36881; EXIF 2.31), else OffsetTime. (None, None) when the
+    file has no EXIF or no readable time (``0000:00:00 00:00:00`` and blanks count as none)."""
+    tags = exif_tags(path)
+    stamp = _exif_text(tags, "EXIF DateTimeOriginal", "EXIF DateTimeDigitized", "Image DateTime")
+    when = None
+    if stamp is not None:
+        try:
+            when = _dt.datetime.strptime(stamp[:19], EXIF_FORMAT)
+        except ValueError:
+            when = None
+        sub = _exif_text(tags, "EXIF SubSecTimeOriginal")
+        if when is not None and sub and sub.isdigit():
+            when = when + _dt.timedelta(seconds=float("0." + sub))
+    offset = _exif_text(tags, "EXIF OffsetTimeOriginal", "EXIF OffsetTime")
+    m = EXIF_OFFSET.match(offset or "")
+    return when, (f"{m.group(1)}{m.group(2)}:{m.group(3)}" if m else None)
+
+
+def _frame_files(path: str | Path) -> list[Path]:
+    """A photo file, or a bracket folder's frames (sorted; hidden files left out)."""
+    p = Path(path)
+    return [p] if p.is_file() else sorted(q for q in p.iterdir() if q.is_file() and not q.name.startswith("."))
+
+
+def exif_stamps(path: str | Path) -> list[tuple[_dt.datetime, str | None]]:
+    """:func:`exif_time` of a photo, or of every frame of a bracket folder that has one."""
+    return [s for s in (exif_time(q) for q in _frame_files(path)) if s[0] is not None]
+
+
+def _gps_degrees(tag) -> float | None:
+    try:
+        d, m, sec = (float(v) for v in tag.values[:3])
+    except (TypeError, ValueError, ZeroDivisionError, AttributeError):
+        return None
+    return d + m / 60.0 + sec / 3600.0
+
+
+def exif_location(path: str | Path) -> tuple[float, float, float | None] | None:
+    """(latitude [deg N], longitude [deg E], altitude [m] or None) from a photo's EXIF GPS tags (GPSLatitude and
+    its Ref, GPSLongitude and its Ref, GPSAltitude and GPSAltitudeRef 1 = below sea level), or from a bracket's first
+    frame that has them; None without them (or with a position of exactly 0, 0: an unset receiver)."""
+    for q in _frame_files(path):
+        tags = exif_tags(q)
+        if "GPS GPSLatitude" not in tags or "GPS GPSLongitude" not in tags:
+            continue
+        lat, lon = _gps_degrees(tags["GPS GPSLatitude"]), _gps_degrees(tags["GPS GPSLongitude"])
+        if lat is None or lon is None or (lat == 0 and lon == 0) or lat > 90 or lon > 180:
+            continue
+        if (_exif_text(tags, "GPS GPSLatitudeRef") or "N").upper().startswith("S"):
+            lat = -lat
+        if (_exif_text(tags, "GPS GPSLongitudeRef") or "E").upper().startswith("W"):
+            lon = -lon
+        alt = None
+        try:
+            alt = float(tags["GPS GPSAltitude"].values[0])
+            ref = tags.get("GPS GPSAltitudeRef")
+            if ref is not None and int(np.ravel(ref.values)[0]) == 1:
+                alt = -alt
+        except (KeyError, TypeError, ValueError, ZeroDivisionError, AttributeError, IndexError):
+            pass
+        return lat, lon, (alt if alt is not None and math.isfinite(alt) else None)
+    return None
 
 
 def _read_exif(path: str) -> dict:
