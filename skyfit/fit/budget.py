@@ -301,7 +301,7 @@ def reference_polish(problem: FitProblem, reference: FitProblem, x_start: Tensor
 
     Returns None where it does not apply (another loss), else ``x`` (P,), ``loss`` (the reference's mean half
     squared whitened residual there, and at ``x_start``: ``loss_start``), ``steps`` (accepted step sizes, max over
-    parameters in natural units) and ``converged`` (the last step under 1e-4).
+    parameters in natural units) and ``converged`` (the last step under 1e-4, or no step lowers the loss).
     """
     if problem.loss.rho != "squared":
         return None
@@ -339,7 +339,7 @@ def reference_polish(problem: FitProblem, reference: FitProblem, x_start: Tensor
 
     r = resid(z)
     loss_start = 0.5 * float((r**2).mean())
-    lam, taken = 1e-3, []
+    lam, taken, converged = 1e-3, [], False
     for _ in range(steps):
         J = torch.empty(r.numel(), z.numel(), dtype=torch.float64)
         for i in range(z.numel()):
@@ -358,10 +358,12 @@ def reference_polish(problem: FitProblem, reference: FitProblem, x_start: Tensor
                 taken.append(float(step.abs().max()))
                 break
             lam *= 4.0
-        if not moved or taken[-1] < 1e-4:
+        # converged: no step lowers the loss (a minimum to the difference Jacobian's resolution), or the last was tiny
+        converged = not moved or taken[-1] < 1e-4
+        if converged:
             break
     return {"x": to_x(z), "loss": 0.5 * float((r**2).mean()), "loss_start": loss_start, "steps": taken,
-            "converged": bool(taken) and taken[-1] < 1e-4 or not taken}
+            "converged": converged}
 
 
 NONLINEAR = 0.02
