@@ -7,7 +7,8 @@ photo fit (docs/photos.md, "Photos in other colour spaces").
     OMP_NUM_THREADS=1 .venv/bin/python scripts/photo_study.py --cases /tmp/p3 --n 20 --out docs/photos/p3 --threads 1 --part 0/2
 
 Each frame is decoded from sRGB (colour-science's cctf), taken from linear sRGB to the space's linear RGB by
-colour-science's RGB_to_RGB (both D65: no adaptation), encoded with the space's own transfer function, and written as
+colour-science's RGB_to_RGB (both D65: no adaptation), encoded with the space's own transfer function (a pixel with a
+channel clipped in sRGB written clipped in all three: the matrix would hide the clip), and written as
 an 8-bit JPEG (quality 90, EXIF kept) carrying the profile of :func:`skyfit.camera.icc.profile_for`. ``--strip``
 writes the same pixels without the profile: what a reader that ignores profiles sees.
 """
@@ -27,10 +28,14 @@ from skyfit.camera.icc import profile_for
 def space_jpeg(src: Path, dst: Path, space: str, strip: bool) -> None:
     im = Image.open(src)
     exif = im.info.get("exif")
-    lin = colour.cctf_decoding(np.asarray(im).astype(np.float64) / 255, function="sRGB")
+    codes = np.asarray(im)
+    lin = colour.cctf_decoding(codes.astype(np.float64) / 255, function="sRGB")
     cs = colour.RGB_COLOURSPACES[space]
     rgb = colour.RGB_to_RGB(lin, colour.RGB_COLOURSPACES["sRGB"], cs, chromatic_adaptation_transform=None)
     enc = cs.cctf_encoding(np.clip(rgb, 0, 1))
+    # a channel clipped in sRGB leaves the pixel unknown: the matrix would mix the clip into unclipped-looking values
+    # in every channel, so such a pixel is written clipped in all three (a camera clips in its own space)
+    enc[(codes >= 254).any(-1)] = 1.0
     dst.parent.mkdir(parents=True, exist_ok=True)
     extra = {"exif": exif} if exif else {}
     if not strip:
