@@ -1977,7 +1977,8 @@ def evaluate_photo(result: dict, photo, *, time: str | None = None, location=Non
     Returns rmse_rel (relative RMS over the used blocks), rmse, delta_e, the pixels, the sun's placement.
     """
     if "camera" not in result or "aerosol" not in result:
-        raise PhotoFitError("evaluate PHOTO needs the RESULT.json of a photo fit (it has no fitted camera)")
+        source = photo.source if isinstance(photo, LinearPhoto) else photo
+        raise PhotoFitError(f"photo {source}: evaluate needs the RESULT.json of a photo fit (this one has no fitted camera)")
     cam = dict(result["camera"])
     params = {k: v for k, v in result["parameters"].items() if not isinstance(v, list)}
     fixed_atm = {k: v for k, v in params.items() if k in ("rayleigh_scale", "rayleigh_scale_height", "mie_aod_550",
