@@ -170,3 +170,13 @@ def test_a_given_response_wins_over_the_profile(tmp_path):
     ph = read_photo(tmp_path / "a.jpg", response="srgb")
     assert ph.meta["response"] == "srgb" and ph.meta["response_source"] == "given"
     assert ph.meta["icc"]["rgb_from_xyz"] is not None  # the primaries still give the colour
+
+
+def test_a_cameras_srgb_profile_with_a_curve_table_is_srgb():
+    # the classic "sRGB IEC61966-2.1" profile cameras embed: a 1024-entry curv table and 4-digit colorants
+    table = tuple(srgb_dec(np.linspace(0, 1, 1024)).tolist())
+    colorants = np.array([[0.4361, 0.3851, 0.1431], [0.2225, 0.7169, 0.0606], [0.0139, 0.0971, 0.7141]])
+    prof = parse_icc(build_icc("sRGB IEC61966-2.1", Curve("table", table=table), colorants))
+    assert prof.is_srgb()
+    # a gamma-2.2 profile on sRGB's primaries is not
+    assert not parse_icc(build_icc("sRGB-ish", Curve("gamma", (2.2,)), colorants)).is_srgb()
