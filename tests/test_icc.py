@@ -180,3 +180,18 @@ def test_a_cameras_srgb_profile_with_a_curve_table_is_srgb():
     assert prof.is_srgb()
     # a gamma-2.2 profile on sRGB's primaries is not
     assert not parse_icc(build_icc("sRGB-ish", Curve("gamma", (2.2,)), colorants)).is_srgb()
+
+
+def test_a_bracket_in_adobe_rgb_decodes_with_its_power_law(tmp_path):
+    yy, xx = np.mgrid[0:40, 0:50]
+    lin = np.stack([0.02 + 0.2 * xx / 50, 0.03 + 0.2 * yy / 40, 0.1 + 0.0 * xx], -1)
+    g = 563 / 256
+    for k, t in enumerate((1.0, 2.0, 4.0)):
+        codes = np.round(np.clip(lin * t, 0, 1) ** (1 / g) * 255).astype(np.uint8)
+        Image.fromarray(codes).save(tmp_path / f"f{k}.png", icc_profile=profile_for("Adobe RGB (1998)"))
+    ph = read_photo(tmp_path, exposures=[1.0, 2.0, 4.0])
+    assert ph.meta["response"] == "gamma:2.2" and ph.meta["response_source"] == "icc"
+    e = ph.meta["frames"][0]["relative_exposure"]
+    np.testing.assert_allclose(ph.rgb * e, lin, rtol=0.02)  # 8-bit codes, merged
+    # asked to, the bracket still estimates its own curve
+    assert read_photo(tmp_path, exposures=[1.0, 2.0, 4.0], response="estimate").meta["response_source"] == "estimated"

@@ -1279,6 +1279,10 @@ def _read_bracket(folder: str, linear: bool, exposures, response) -> LinearPhoto
                          f"the parametric response {resp.name} and the calibrated curve is consistent with them; a "
                          "response and the ratios are known only together (Grossberg & Nayar 2003), so give exposures "
                          "(or EXIF) for an absolute calibration")
+    elif req is None and frames[0].icc is not None and not frames[0].icc.is_srgb():
+        # the frames declare their encoding (Adobe RGB's power law 563/256): the ratio-constancy estimate put it at
+        # 2.26-2.48 on the suite's Adobe RGB brackets (docs/photos.md); --response estimate still estimates
+        resp, source = _icc_response(frames[0].icc), "icc"
     elif req is None or req == "estimate":
         resp, info = _estimate_response(frames, order, rel_exp, step, notes)
         source = "estimated" if info.get("method") != "fallback" else "default"
@@ -1339,9 +1343,8 @@ def _read_bracket(folder: str, linear: bool, exposures, response) -> LinearPhoto
     meta.update({"frame_format": kinds[0], "response": resp.name, "response_source": source,
                  "frames": _frame_list_meta(frames, rel_exp, esrc), "noise": _noise_meta(frames),
                  "darkest_frame": files[order[0]]})
-    # a camera's JPEG tone curve departs from its profile's, which the bracket measures: the response stays the
-    # bracket's (estimated by default); the profile's primaries still give the colour
-    meta.update(_icc_meta(first, f"the codes are decoded as {resp.name} ({source}, the bracket's own)", notes))
+    meta.update(_icc_meta(first, "its tone curves decode the codes" if source == "icc" else
+                          f"the codes are decoded as {resp.name} ({source})", notes))
     if info is not None:
         meta["response_estimate"] = {k: v for k, v in info.items() if k != "scores"}
         if "scores" in info:
