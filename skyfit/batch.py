@@ -33,7 +33,6 @@ import hashlib
 import json
 import math
 import os
-import re
 import socket
 import tempfile
 import time

@@ -62,6 +62,11 @@ class Curve:
             return np.where(c >= d, base ** g, cc * c)
         return np.where(c >= d, base ** g + e, cc * c + f)  # type 4
 
+    def is_srgb(self) -> bool:
+        """Whether this is the sRGB curve (IEC 61966-2-1) to :data:`SRGB_TOLERANCE` at 1025 codes."""
+        c = np.linspace(0.0, 1.0, 1025)
+        return bool(np.max(np.abs(self(c) - _srgb_curve(c))) <= SRGB_TOLERANCE)
+
     @property
     def gamma(self) -> float | None:
         """The exponent of a pure power law (curv with one entry, or parametric type 0), else None."""
@@ -112,16 +117,18 @@ class IccProfile:
 
     def is_srgb(self) -> bool:
         """Whether the profile is sRGB's (IEC 61966-2-1): its curves and colorants to :data:`SRGB_TOLERANCE`."""
-        from .srgb import srgb_decode
-        import torch
-
-        c = np.linspace(0.0, 1.0, 1025)
-        ref = srgb_decode(torch.from_numpy(c)).numpy()
-        if any(np.max(np.abs(k(c) - ref)) > SRGB_TOLERANCE for k in self.curves):
+        if not all(k.is_srgb() for k in self.curves):
             return False
         if self.colorants is None:
             return True
         return bool(np.max(np.abs(self.colorants - srgb_colorants())) < SRGB_TOLERANCE)
+
+
+def _srgb_curve(c: np.ndarray) -> np.ndarray:
+    from .srgb import srgb_decode
+    import torch
+
+    return srgb_decode(torch.from_numpy(np.asarray(c, np.float64))).numpy()
 
 
 @functools.lru_cache(maxsize=1)

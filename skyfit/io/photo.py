@@ -598,12 +598,10 @@ def _ldr_frame(path: str, kind: str, arr: np.ndarray, exif: dict, bits: int | No
     mono = _check_channels(path, arr)
     if mono:
         arr = _as_rgba(arr)
-    if bits is not None and arr.dtype == np.uint16 and 8 < bits <= 16:
-        pass
-    elif arr.dtype == np.uint8:
+    if arr.dtype == np.uint8:
         bits = 8
     elif arr.dtype == np.uint16:
-        bits = 16
+        bits = bits if bits is not None and 8 < bits <= 16 else 16
     else:
         raise PhotoError(f"photo {path}: unsupported bit depth ({arr.dtype}); expected 8- or 16-bit integer channels")
     max_code = 2**bits - 1
@@ -729,7 +727,7 @@ def _icc_response(prof: IccProfile) -> _Response:
     curves = prof.curves if not prof.same_curves() else prof.curves[:1]
     values = np.stack([k(c) for k in curves], 1)
     if values.shape[1] == 1:
-        if np.max(np.abs(values[:, 0] - srgb_decode(torch.from_numpy(c)).numpy())) < ICC_SRGB_TOLERANCE:
+        if curves[0].is_srgb():
             return _Response("srgb")
         if np.max(np.abs(values[:, 0] - c)) < ICC_SRGB_TOLERANCE:
             return _Response("linear")
@@ -744,8 +742,9 @@ def _icc_response(prof: IccProfile) -> _Response:
     return _Response(f"icc:{prof.description or 'embedded'}", table=tab)
 
 
-def _icc_meta(frame: _Frame, how: str, notes: list[str]) -> dict:
-    """RESULT.json's ``photo.icc`` and a note, for a frame with an embedded profile (empty without one)."""
+def _icc_meta(frame: _Frame, resp: _Response, source: str, notes: list[str]) -> dict:
+    """RESULT.json's ``photo.icc`` and a note, for a frame with an embedded profile (empty without one); ``resp`` and
+    ``source``: how the codes were decoded."""
     if frame.icc_problem:
         notes.append(frame.icc_problem)
     prof = frame.icc
@@ -755,6 +754,7 @@ def _icc_meta(frame: _Frame, how: str, notes: list[str]) -> dict:
     out = {"description": prof.description, "srgb": srgb,
            "rgb_from_xyz": None if prof.grey or srgb else prof.rgb_from_xyz().tolist()}
     if not srgb:
+        how = "its tone curves decode the codes" if source == "icc" else f"the codes are decoded as {resp.name} ({source})"
         colour = "" if prof.grey else "; its primaries give the channels' colour (the fit's default camera)"
         notes.append(f"the photo carries the ICC profile {prof.description or '(unnamed)'!r}, not sRGB: {how}{colour}")
     return {"icc": out}
@@ -1151,8 +1151,7 @@ def _read_single(path: str, kind: str, linear: bool, exposures, response) -> Lin
     meta = _base_meta(kind, frame.bit_depth, ex, frame.mono)
     meta.update({"response": resp.name, "response_source": source,
                  "frames": _frame_list_meta([frame], [e], [esrc]), "noise": _noise_meta([frame])})
-    meta.update(_icc_meta(frame, "its tone curves decode the codes" if source == "icc" else
-                          f"the codes are decoded as {resp.name} ({source})", notes))
+    meta.update(_icc_meta(frame, resp, source, notes))
     if resp.table is not None:
         meta["response_curve"] = resp.table.curve()
     if frame.kind == "raw":
@@ -1343,8 +1342,7 @@ def _read_bracket(folder: str, linear: bool, exposures, response) -> LinearPhoto
     meta.update({"frame_format": kinds[0], "response": resp.name, "response_source": source,
                  "frames": _frame_list_meta(frames, rel_exp, esrc), "noise": _noise_meta(frames),
                  "darkest_frame": files[order[0]]})
-    meta.update(_icc_meta(first, "its tone curves decode the codes" if source == "icc" else
-                          f"the codes are decoded as {resp.name} ({source})", notes))
+    meta.update(_icc_meta(first, resp, source, notes))
     if info is not None:
         meta["response_estimate"] = {k: v for k, v in info.items() if k != "scores"}
         if "scores" in info:
