@@ -48,3 +48,14 @@ def exif_when_where(when: str | None, offset: str | None, lat: float | None = No
         if alt is not None:
             gps[5], gps[6] = (b"\x01" if alt < 0 else b"\x00"), R(round(abs(alt) * 10), 10)
     return ex
+
+
+def exif_colour_space(color_space: int, interop: str | None = None) -> Image.Exif:
+    """EXIF ColorSpace (40961: 1 sRGB, 0xFFFF uncalibrated) and an interoperability IFD with its index (1: "R98" for
+    sRGB, "R03" for DCF's option space, Adobe RGB), as a camera set to Adobe RGB writes them without a profile."""
+    ex = Image.Exif()
+    sub = ex.get_ifd(ExifTags.IFD.Exif)
+    sub[40961] = color_space
+    if interop is not None:
+        sub[ExifTags.IFD.Interop] = {1: interop, 2: b"0100"}  # a dict: Pillow writes it as the nested IFD
+    return ex

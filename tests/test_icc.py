@@ -16,7 +16,7 @@ import tifffile
 import torch
 from PIL import Image, ImageCms
 
-from _files import png16
+from _files import exif_colour_space, png16
 from test_photo_read import srgb_dec, srgb_enc  # IEC 61966-2-1 in numpy
 
 from skyfit.camera.icc import (Curve, IccError, build_icc, icc_sensitivities, parse_icc, profile_for,
@@ -195,3 +195,41 @@ def test_a_bracket_in_adobe_rgb_decodes_with_its_power_law(tmp_path):
     np.testing.assert_allclose(ph.rgb * e, lin, rtol=0.02)  # 8-bit codes, merged
     # asked to, the bracket still estimates its own curve
     assert read_photo(tmp_path, exposures=[1.0, 2.0, 4.0], response="estimate").meta["response_source"] == "estimated"
+
+
+def test_adobe_rgb_declared_by_exif_alone(tmp_path):
+    """A Canon in Adobe RGB mode embeds no profile: ColorSpace uncalibrated + interoperability R03 (or a DCF option
+    file name "_MG_...") declares it. The codes decode exactly as with the embedded Adobe RGB profile."""
+    codes = np.random.default_rng(8).integers(10, 240, (6, 7, 3)).astype(np.uint8)
+    Image.fromarray(codes).save(tmp_path / "icc.jpg", quality=95, icc_profile=profile_for("Adobe RGB (1998)"))
+    Image.fromarray(codes).save(tmp_path / "r03.jpg", quality=95, exif=exif_colour_space(0xFFFF, "R03"))
+    Image.fromarray(codes).save(tmp_path / "_MG_0001.jpg", quality=95, exif=exif_colour_space(0xFFFF))
+    Image.fromarray(codes).save(tmp_path / "unknown.jpg", quality=95, exif=exif_colour_space(0xFFFF))
+    Image.fromarray(codes).save(tmp_path / "srgb.jpg", quality=95, exif=exif_colour_space(1, "R98"))
+    ref = read_photo(tmp_path / "icc.jpg")
+    for name, why in (("r03.jpg", "interoperability index R03"), ("_MG_0001.jpg", "DCF option file name")):
+        ph = read_photo(tmp_path / name)
+        assert ph.meta["response"] == "gamma:2.2" and ph.meta["response_source"] == "icc"
+        assert ph.meta["icc"]["source"] == "exif" and ref.meta["icc"]["source"] == "embedded"
+        np.testing.assert_array_equal(ph.rgb, ref.rgb)
+        np.testing.assert_allclose(ph.meta["icc"]["rgb_from_xyz"], ref.meta["icc"]["rgb_from_xyz"], rtol=1e-12)
+        assert any(why in n and "Adobe RGB" in n for n in ph.meta["notes"])
+    plain = read_photo(tmp_path / "srgb.jpg")
+    assert "icc" not in plain.meta and plain.meta["response"] == "srgb" and not plain.meta["notes"]
+    np.testing.assert_allclose(plain.rgb, srgb_dec(np.asarray(Image.open(tmp_path / "srgb.jpg")) / 255.0), rtol=1e-12)
+    # uncalibrated with nothing else: the space is unknown, read as sRGB, and the note says so
+    un = read_photo(tmp_path / "unknown.jpg")
+    assert "icc" not in un.meta and un.meta["response"] == "srgb"
+    assert any("'uncalibrated'" in n for n in un.meta["notes"])
+    np.testing.assert_allclose(un.rgb, srgb_dec(np.asarray(Image.open(tmp_path / "unknown.jpg")) / 255.0), rtol=1e-12)
+    # a bracket of such frames takes the power law too
+    (tmp_path / "b").mkdir()
+    for k in range(3):
+        Image.fromarray(np.clip(codes.astype(int) + 10 * k, 0, 255).astype(np.uint8)).save(
+            tmp_path / "b" / f"f{k}.jpg", quality=95, exif=exif_colour_space(0xFFFF, "R03"))
+    b = read_photo(tmp_path / "b", exposures=[1.0, 1.2, 1.4])
+    assert b.meta["response_source"] == "icc" and b.meta["icc"]["source"] == "exif"
+    # an embedded profile wins over the EXIF declaration
+    Image.fromarray(codes).save(tmp_path / "both.jpg", quality=95, exif=exif_colour_space(0xFFFF, "R03"),
+                                icc_profile=profile_for("Display P3"))
+    assert read_photo(tmp_path / "both.jpg").meta["icc"]["description"] == "Display P3"

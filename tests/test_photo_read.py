@@ -308,6 +308,15 @@ def test_bracket_merge_recovers_a_known_linear_scene(tmp_path):
     json.dumps(m)
 
 
+def test_a_bracket_smaller_than_one_scene_block_merges(tmp_path):
+    """Frames smaller than the scene check's block (a thumbnail bracket) merge; the check once crashed on them."""
+    lin = np.random.default_rng(3).uniform(0.05, 0.2, (6, 7, 3))
+    for k, t in enumerate((1.0, 2.0, 4.0)):
+        Image.fromarray(np.round(srgb_enc(lin * t) * 255).astype(np.uint8)).save(tmp_path / f"f{k}.png")
+    ph = read_photo(tmp_path, exposures=[1.0, 2.0, 4.0])
+    np.testing.assert_allclose(ph.rgb * ph.meta["frames"][0]["relative_exposure"], lin, rtol=0.02)
+
+
 def test_bracket_merge_in_row_blocks_and_forced_response(tmp_path, monkeypatch):
     import skyfit.io.photo as photo
 

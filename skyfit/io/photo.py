@@ -441,7 +441,7 @@ def exif_location(path: str | Path) -> tuple[float, float, float | None] | None:
 def _read_exif(path: str) -> dict:
     """EXIF facts of a file (None where absent): exposure_s, f_number, iso, datetime_original, camera_make/model."""
     out = {"exposure_s": None, "f_number": None, "iso": None, "datetime_original": None,
-           "camera_make": None, "camera_model": None}
+           "camera_make": None, "camera_model": None, "color_space": None, "interop_index": None}
     tags = exif_tags(path)
 
     def first(*names):
@@ -460,6 +460,12 @@ def _read_exif(path: str) -> dict:
         if t is not None:
             s = str(t.printable if hasattr(t, "printable") else t).strip().strip("\x00").strip()
             out[key] = s or None
+    cs = first("EXIF ColorSpace")
+    if cs is not None and getattr(cs, "values", None):
+        out["color_space"] = int(cs.values[0])
+    t = first("Interoperability InteroperabilityIndex")
+    if t is not None:
+        out["interop_index"] = str(t.printable if hasattr(t, "printable") else t).strip().strip("\x00").strip() or None
     return out
 
 
@@ -496,6 +502,7 @@ class _Frame:
     mono: bool = False                        # a grey image: its one channel in all three of ``codes``
     icc: IccProfile | None = None             # the embedded matrix/TRC profile, if any
     icc_problem: str | None = None            # why an embedded profile is not used
+    icc_source: str = "embedded"              # or "exif": no profile, the EXIF colour space declares Adobe RGB
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -685,7 +692,35 @@ def _read_frame(path: str, kind: str) -> _Frame:
                          "save linear HDR data as EXR or Radiance .hdr")
     frame = _ldr_frame(path, kind, arr, exif, bits)
     frame.icc, frame.icc_problem = _embedded_icc(path, kind, frame.mono)
+    if frame.icc is None and frame.icc_problem is None and not frame.mono:
+        frame.icc, frame.icc_problem = _exif_colour_space(path, exif)
+        if frame.icc is not None:
+            frame.icc_source = "exif"
     return frame
+
+
+ADOBE_RGB = "Adobe RGB (1998)"
+EXIF_UNCALIBRATED = 0xFFFF
+
+
+def _exif_colour_space(path: str, exif: dict) -> tuple[IccProfile | None, str | None]:
+    """Adobe RGB declared by EXIF alone, as Canon's and other cameras' JPEGs in Adobe RGB mode do without a profile:
+    ColorSpace "uncalibrated" (0xFFFF) with the interoperability index "R03" (DCF 2.0's option colour space), or a DCF
+    option file name ("_" first, e.g. ``_MG_1234.JPG``); ColorSpace 2 (Adobe RGB, written by some software though
+    not in the EXIF standard). Uncalibrated with neither: not sRGB, space unknown; read as sRGB and say so."""
+    cs = exif.get("color_space")
+    if cs is None or cs == 1:
+        return None, None
+    r03 = (exif.get("interop_index") or "").upper() == "R03"
+    dcf_option = os.path.basename(path).startswith("_")
+    if cs == 2 or (cs == EXIF_UNCALIBRATED and (r03 or dcf_option)):
+        from ..camera.icc import profile_for
+
+        return parse_icc(profile_for(ADOBE_RGB)), None
+    if cs == EXIF_UNCALIBRATED:
+        return None, ("its EXIF colour space is 'uncalibrated' (not sRGB) with no ICC profile and no interoperability "
+                      "index R03 (Adobe RGB): the space is unknown; read as sRGB (embed the profile, or convert to sRGB)")
+    return None, None
 
 
 def _embedded_icc(path: str, kind: str, mono: bool) -> tuple[IccProfile | None, str | None]:
@@ -751,12 +786,19 @@ def _icc_meta(frame: _Frame, resp: _Response, source: str, notes: list[str]) -> 
     if prof is None:
         return {}
     srgb = prof.is_srgb()
-    out = {"description": prof.description, "srgb": srgb,
+    out = {"description": prof.description, "srgb": srgb, "source": frame.icc_source,
            "rgb_from_xyz": None if prof.grey or srgb else prof.rgb_from_xyz().tolist()}
     if not srgb:
         how = "its tone curves decode the codes" if source == "icc" else f"the codes are decoded as {resp.name} ({source})"
         colour = "" if prof.grey else "; its primaries give the channels' colour (the fit's default camera)"
-        notes.append(f"the photo carries the ICC profile {prof.description or '(unnamed)'!r}, not sRGB: {how}{colour}")
+        if frame.icc_source == "exif":
+            why = ("interoperability index R03" if (frame.exif.get("interop_index") or "").upper() == "R03"
+                   else "a DCF option file name" if frame.exif.get("color_space") == EXIF_UNCALIBRATED
+                   else "ColorSpace 2")
+            how = "its power law 563/256 decodes the codes" if source == "icc" else how
+            notes.append(f"the photo has no ICC profile and its EXIF declares Adobe RGB (1998) ({why}): {how}{colour}")
+        else:
+            notes.append(f"the photo carries the ICC profile {prof.description or '(unnamed)'!r}, not sRGB: {how}{colour}")
     return {"icc": out}
 
 
@@ -919,6 +961,8 @@ def _block_log_ratios(a: _Frame, b: _Frame, ra: _Response, rb: _Response, lo: fl
     d = np.where(ok, _lookup(lb, b.codes) - _lookup(la, a.codes), np.nan)
     k = SCENE_BLOCK
     nh, nw = d.shape[0] // k, d.shape[1] // k
+    if nh == 0 or nw == 0:  # a frame smaller than one block: the per-pixel check alone judges it
+        return np.empty(0)
     blocks = block_view(d, k, nh, nw).reshape(nh, nw, -1)
     enough = np.isfinite(blocks).sum(-1) >= (k * k * 3) // 4
     if not enough.any():
