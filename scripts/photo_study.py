@@ -74,6 +74,9 @@ def score(truth: dict, result: dict) -> dict:
         "sun_zenith_deg": truth["sun"]["zenith_deg"],
         "aod_true": tp["aod_550"] if "aod_550" in tp else tp.get("mie_aod_550"), "aod_fit": aer["aod_550"],
         "aod_sigma": aer["sigma"].get("aod_550"),
+        "sigma": {k: aer["sigma"].get(k) for k in ("aod_550", "angstrom_alpha", "g")},
+        "sigma_noise": {k: ((result.get("laplace") or {}).get("sigma_noise") or {}).get(n)
+                        for k, n in (("aod_550", "mie_aod_550"), ("angstrom_alpha", "mie_angstrom_alpha"), ("g", "mie_g"))},
         "alpha_true": tp.get("angstrom_alpha", tp.get("mie_angstrom_alpha")), "alpha_fit": aer["angstrom_alpha"],
         "g_true": tp.get("mie_g"), "g_fit": aer["g"],
         "heading_err_deg": circular_diff_deg(cam["up_azimuth_deg"], tc["up_azimuth_deg"]),
@@ -160,6 +163,19 @@ def main(argv=None) -> int:
     return write_study(rows, out, argv)
 
 
+def coverage(rows: list) -> dict:
+    """How often the truth lies within 1 and 2 reported sigma (the total, and the noise's alone) of the fitted AOD,
+    Angstrom exponent and g, over the cases that report both."""
+    out = {}
+    for key, fit, true in (("aod_550", "aod_fit", "aod_true"), ("angstrom_alpha", "alpha_fit", "alpha_true"), ("g", "g_fit", "g_true")):
+        for kind in ("sigma", "sigma_noise"):
+            z = [abs(r[fit] - r[true]) / r[kind][key] for r in rows
+                 if (r.get(kind) or {}).get(key) and r.get(true) is not None]
+            out[f"{key}_{kind}"] = {"n": len(z), "within_1": int(sum(v <= 1 for v in z)), "within_2": int(sum(v <= 2 for v in z)),
+                                    "median_abs_z": float(np.median(z)) if z else None}
+    return out
+
+
 def write_study(rows: list, out: Path, argv) -> int:
     """study.json (summary and every case) and study.md (the table) of the fitted cases."""
     ok = [r for r in rows if "error" not in r]
@@ -182,6 +198,7 @@ def write_study(rows: list, out: Path, argv) -> int:
         "projection_right": sum(r["projection_fit"] == r["projection_true"] for r in ok),
         "rays_p95_within_0.5deg": sum(r.get("ray_err_deg", {}).get("p95", math.inf) <= 0.5 for r in ok),
         "rays_p95_median_deg": float(np.median([r["ray_err_deg"]["p95"] for r in ok if "ray_err_deg" in r])) if ok else None,
+        "coverage": coverage(ok),
         "median_wall_s": float(np.median([r["wall_s"] for r in ok])) if ok else None,
         "median_cpu_s": float(np.median([r["cpu_s"] for r in ok])) if ok else None,
         "median_load_avg": float(np.median([r["load_avg"] for r in rows])) if rows else None,

@@ -90,8 +90,12 @@ elevation is 2.66 with 48 mu samples, 1.99 with 64, 1.62 with 96 (r, transmittan
 < 1 %), so the earlier (128, 32, 32, 8, 12, 48, 16, 8) put the factor 20 % above the generator's and biased hazy
 skies low; these take the generator's scattering grid (its transmittance and irradiance are larger, its
 wavelengths 20, its single scattering from the tables) and share its error in mu (docs/photos.md, "Speed")."""
+PHOTO_CLUSTERS = 24
+"""Sky regions of a photo fit's discrepancy term (``fit.sigma_clusters``; :func:`skyfit.fit.budget.robust_sandwich_share`):
+8 scattering-angle x 3 view-zenith bins of ~120 blocks each, twice the 12 free parameters of a photo fit (the
+sandwich needs G - 1 >= P; its variances' relative spread is about sqrt(2 / (G - 1)), 0.3)."""
 PHOTO_SETTINGS = {"loss": "cauchy", "orders": 4, "multiple": "bruneton", "table_sizes": list(PHOTO_TABLES),
-                  "starts": 1, "adam_steps": 30, "max_iter": 80,
+                  "starts": 1, "adam_steps": 30, "max_iter": 80, "sigma_clusters": PHOTO_CLUSTERS,
                   "initial": {"mie_aod_550": 0.1, "mie_angstrom_alpha": 1.0, "mie_g": 0.7}}
 """Fit settings of a photo unless the config's ``fit:`` section or keywords say otherwise: a robust loss
 (obstacles the masks miss); four orders of Bruneton's tables (:data:`PHOTO_TABLES`) frozen per fit around live single
