@@ -75,6 +75,7 @@ def score(truth: dict, result: dict) -> dict:
         "aod_true": tp["aod_550"] if "aod_550" in tp else tp.get("mie_aod_550"), "aod_fit": aer["aod_550"],
         "aod_sigma": aer["sigma"].get("aod_550"),
         "sigma": {k: aer["sigma"].get(k) for k in ("aod_550", "angstrom_alpha", "g")},
+        "sigma_statistical": aer.get("sigma_statistical"),
         "sigma_noise": {k: ((result.get("laplace") or {}).get("sigma_noise") or {}).get(n)
                         for k, n in (("aod_550", "mie_aod_550"), ("angstrom_alpha", "mie_angstrom_alpha"), ("g", "mie_g"))},
         "alpha_true": tp.get("angstrom_alpha", tp.get("mie_angstrom_alpha")), "alpha_fit": aer["angstrom_alpha"],
@@ -164,11 +165,12 @@ def main(argv=None) -> int:
 
 
 def coverage(rows: list) -> dict:
-    """How often the truth lies within 1 and 2 reported sigma (the total, and the noise's alone) of the fitted AOD,
+    """How often the truth lies within 1 and 2 reported sigma (the total, the budget's without the validation term, and
+    the noise's alone) of the fitted AOD,
     Angstrom exponent and g, over the cases that report both."""
     out = {}
     for key, fit, true in (("aod_550", "aod_fit", "aod_true"), ("angstrom_alpha", "alpha_fit", "alpha_true"), ("g", "g_fit", "g_true")):
-        for kind in ("sigma", "sigma_noise"):
+        for kind in ("sigma", "sigma_statistical", "sigma_noise"):
             z = [abs(r[fit] - r[true]) / r[kind][key] for r in rows
                  if (r.get(kind) or {}).get(key) and r.get(true) is not None]
             out[f"{key}_{kind}"] = {"n": len(z), "within_1": int(sum(v <= 1 for v in z)), "within_2": int(sum(v <= 2 for v in z)),

@@ -323,3 +323,19 @@ def test_a_result_camera_fixes_every_response_value_it_has():
                                          "saturation_blue": 0.82, "vignetting": -0.2}
     assert _fixed_camera_values({"gain_red": 0.9}) == {"gain_red": 0.9}
     assert _NUISANCE_DEFAULTS["saturation_red"] == 1.0 and _NUISANCE_DEFAULTS["saturation_blue"] == 1.0
+
+
+def test_aerosol_sigma_adds_the_validation_term_in_quadrature():
+    """RESULT.json's aerosol: sigma = hypot(budget sigma, expected error of the photo path); the relative term scales
+    with the fitted AOD; a parameter held fixed (a grey photo's Angstrom exponent) gets none; no budget sigma, no sigma."""
+    from skyfit.fit.photo import PHOTO_VALIDATION_SIGMA, aerosol_summary
+
+    vals = {"mie_aod_550": 0.2, "mie_angstrom_alpha": 1.3, "mie_g": 0.75, "rayleigh_scale": 1.0}
+    sig = {"mie_aod_550": 0.004, "mie_angstrom_alpha": 0.05, "mie_g": None}
+    a = aerosol_summary(vals, sig, ["mie_aod_550", "mie_g"])
+    rel = PHOTO_VALIDATION_SIGMA["aod_550"][1]
+    assert a["aod_550"] == 0.2 and a["sigma_validation"]["aod_550"] == pytest.approx(rel * 0.2, rel=1e-12)
+    assert a["sigma"]["aod_550"] == pytest.approx(math.sqrt(0.004**2 + (rel * 0.2) ** 2), rel=1e-12)
+    assert "angstrom_alpha" not in a["sigma_validation"] and a["sigma"]["angstrom_alpha"] == 0.05
+    assert a["sigma"]["g"] is None and a["sigma_validation"]["g"] == PHOTO_VALIDATION_SIGMA["g"][1]
+    assert a["sigma_statistical"]["aod_550"] == 0.004 and a["sigma"]["rayleigh_scale"] is None

@@ -75,7 +75,8 @@ from ..scattering.bruneton_tables import TableSizes
 from ..scattering.multiple import precompute, sky_radiance
 from ..scattering.single import ray_parameters
 from ..transmittance import make_integrator
-from .laplace import bound_slots, covariance_summary, derived_functions, display_names, laplace_summary, physical_slot_values, transform_jacobian
+from .laplace import (bound_slots, covariance_summary, derived_functions, display_names, hessian_nll, laplace_summary,
+                      physical_slot_values, transform_jacobian)
 from .model import FitProblem, SkyModel
 from .optimise import FitOptions, fit
 from .parameters import (MIE_G2_DEFAULT, MIE_HG_WEIGHT_DEFAULT, NUISANCE, PARAMETERS, TWO_TERM_HG, FitError, Parameterisation,
@@ -601,8 +602,40 @@ ROBUST_RHOS = ("huber", "cauchy")
 :func:`robust_sandwich_share`."""
 
 
+def _robust_weights(problem: FitProblem, preds, phys: dict, i: int) -> tuple[Tensor, Tensor, Tensor]:
+    """(psi, psi', r) of observation i's whitened residuals r under the loss's rho, (N_i, C_i) each, float64, zero at
+    censored elements."""
+    o = problem.observations[i]
+    s = o.sigma[o.mask] * phys_noise_scale(problem, phys, i)
+    r = problem.loss.residuals(preds[i], o.values[o.mask], s).to(torch.float64).detach().requires_grad_(True)
+    (psi,) = torch.autograd.grad(problem.loss.rho_fn(r).sum(), r, create_graph=True)
+    (dpsi,) = torch.autograd.grad(psi.sum(), r)  # psi' (rho acts elementwise)
+    keep = _uncensored(problem, i, preds[i]).to(torch.float64)
+    return psi.detach() * keep, dpsi.detach() * keep, r.detach() * keep
+
+
+def robust_hessian(problem: FitProblem, x: Tensor, H: Tensor, jac: list[Tensor]) -> Tensor:
+    """The Hessian H of a robust fit (n_elements x objective, (P, P)) with each element's curvature psi'(r) raised to
+    its IRLS weight psi(r) / r (Holland & Welsch 1977): H + sum_e (psi / r - psi') g_e g_e^T, g_e = dr_e/dx.
+
+    A redescending rho (Cauchy) has psi' < 0 beyond |r| = c, so outliers can make H indefinite and the Laplace
+    sigma undefined (2 of the 20 synthetic photos, docs/photos.md); psi / r - psi' >= 0 for Huber and Cauchy, so this
+    adds a positive semi-definite matrix and keeps the priors' and the model's own curvature."""
+    with torch.no_grad():
+        preds = problem.predict(x)
+    phys = {k: v.detach() for k, v in problem.param.to_physical(x).items()}
+    grads = whitened_jacobian(problem, jac, preds, 0.0, phys)
+    out = H.to(torch.float64).clone()
+    for i, g in enumerate(grads):
+        psi, dpsi, r = _robust_weights(problem, preds, phys, i)
+        small = r.abs() <= 1e-12
+        w = torch.where(small, dpsi, psi / torch.where(small, torch.ones_like(r), r))
+        out += torch.einsum("ncp,nc,ncq->pq", g, (w - dpsi).clamp_min(0.0), g)
+    return 0.5 * (out + out.T)
+
+
 def robust_sandwich_share(problem: FitProblem, jac: list[Tensor], preds, labels: list[Tensor], phys: dict,
-                          cov_noise: Tensor) -> Tensor:
+                          cov_noise: Tensor, irls: bool = False) -> Tensor:
     """The discrepancy share of a robust fit (huber or cauchy rho on a linear or log residual): the cluster
     jackknife over sky regions of an M-estimator, less what independent elements would give, (P, P). [x units^2]
 
@@ -614,7 +647,8 @@ def robust_sandwich_share(problem: FitProblem, jac: list[Tensor], preds, labels:
     cluster c out by one Newton step, d_c = (H - H_c)^-1 s_c with s_c = sum_{e in c} psi_e g_e and H_c = sum_{e in c}
     psi'_e g_e g_e^T, the cluster's part of H in its Gauss-Newton form (IRLS weights psi / r instead over-state it by
     ~25 % under Gaussian noise for the Cauchy rho, and H - H_c then nearly loses a direction: the white-noise share
-    came out 2-6 sigma), and V = (G - 1) / G sum_c d_c d_c^T. The
+    came out 2-6 sigma; ``irls``: H is :func:`robust_hessian`'s, and H_c takes max(psi', psi / r) likewise), and
+    V = (G - 1) / G sum_c d_c d_c^T. The
     share is the positive part of V - H^-1 M_white H^-1: zero when the residuals are as independent as the noise
     model says, the excess when sky regions err together."""
     grads = whitened_jacobian(problem, jac, preds, 0.0, phys)
@@ -624,13 +658,11 @@ def robust_sandwich_share(problem: FitProblem, jac: list[Tensor], preds, labels:
     scores = torch.zeros(G, P, dtype=torch.float64, device=dev)
     info = torch.zeros(G, P, P, dtype=torch.float64, device=dev)
     white = torch.zeros(P, P, dtype=torch.float64, device=dev)
-    for i, (g, m, o, lab) in enumerate(zip(grads, preds, problem.observations, labels)):
-        s = o.sigma[o.mask] * phys_noise_scale(problem, phys, i)
-        r = problem.loss.residuals(m, o.values[o.mask], s).to(torch.float64).detach().requires_grad_(True)
-        (psi,) = torch.autograd.grad(problem.loss.rho_fn(r).sum(), r, create_graph=True)
-        (w,) = torch.autograd.grad(psi.sum(), r)  # psi' (rho acts elementwise)
-        keep = _uncensored(problem, i, m).to(torch.float64)
-        psi, w = psi.detach() * keep, w.detach() * keep
+    for i, (g, lab) in enumerate(zip(grads, labels)):
+        psi, w, r = _robust_weights(problem, preds, phys, i)
+        if irls:  # H is robust_hessian's: the clusters' parts in the same form
+            small = r.abs() <= 1e-12
+            w = torch.maximum(w, torch.where(small, w, psi / torch.where(small, torch.ones_like(r), r)))
         lab = lab.to(dev)
         scores.index_add_(0, lab, (g * psi.unsqueeze(-1)).sum(1))
         info.index_add_(0, lab, torch.einsum("ncp,nc,ncq->npq", g, w, g))
@@ -1005,7 +1037,8 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
         if term.jacobian is None:
             term.jacobian = prediction_jacobian(problem, x)
         labels = sky_clusters(problem, phys, clusters, min_count)
-        shares["sandwich"] = robust_sandwich_share(problem, term.jacobian, m_fit, labels, phys, cov_noise)
+        shares["sandwich"] = robust_sandwich_share(problem, term.jacobian, m_fit, labels, phys, cov_noise,
+                                                   irls="hessian" in lap)
         budget["discrepancy"].update(_cluster_meta(labels, P, min_count, form="jackknife", robust=problem.loss.rho))
     budget["floor_relative"] = f if applicable else None
     budget["floor_relative_68"] = f_range if applicable else None
@@ -1093,8 +1126,20 @@ def uncertainty(problem: FitProblem, x: Tensor, sigma: str = "total", reference:
         raise FitError(f"sigma must be one of {', '.join(SIGMA_MODES)}, got {sigma!r}")
     if discrepancy not in DISCREPANCY_MODELS:
         raise FitError(f"discrepancy must be one of {', '.join(DISCREPANCY_MODELS)}, got {discrepancy!r}")
-    lap = laplace_summary(problem, x)
+    H = hessian_nll(problem, x)
+    lap = laplace_summary(problem, x, hessian=H)
+    term = None
+    if sigma == "total" and not lap["positive_definite"] and problem.loss.rho in ROBUST_RHOS:
+        # outliers' negative curvature under a redescending rho: the IRLS curvature instead (robust_hessian)
+        jac = prediction_jacobian(problem, x)
+        irls = laplace_summary(problem, x, hessian=robust_hessian(problem, x, H, jac))
+        if irls["positive_definite"]:
+            lap = {**irls, "hessian": f"IRLS: the Hessian of the {problem.loss.rho} loss was not positive definite "
+                                      f"(min eigenvalue {lap['min_eigenvalue']:.3g}); each element's curvature psi' "
+                                      "raised to psi / r"}
+            term = numerical_term(problem, x, lap, reference=reference, refits=refits, options=options, polish=polish)
+            term.jacobian = jac
     if sigma == "noise" or not lap.get("positive_definite", True):
         return {**lap, "sigma_mode": "noise"}
     return error_budget(problem, x, lap, reference=reference, refits=refits, options=options, polish=polish,
-                        discrepancy=discrepancy, clusters=clusters, expand=expand)
+                        discrepancy=discrepancy, clusters=clusters, expand=expand, term=term)

@@ -174,12 +174,13 @@ def covariance_summary(problem: FitProblem, x: Tensor, cov_x: Tensor, pd: bool =
     out["derived"] = derived
     return out
 
-def laplace_summary(problem: FitProblem, x: Tensor) -> dict:
+def laplace_summary(problem: FitProblem, x: Tensor, hessian: Tensor | None = None) -> dict:
     """The Laplace approximation at the fitted x: sigma and correlation per free parameter.
 
     Args:
         problem: the fit problem (its objective is the mean loss per element).
         x: the fitted unconstrained vector, shape (P,).
+        hessian: the Hessian of n_elements x objective at x, (P, P) (default :func:`hessian_nll`).
 
     Returns:
         dict with ``names`` (param.names), ``values`` and ``sigma`` (name -> physical value and
@@ -192,7 +193,7 @@ def laplace_summary(problem: FitProblem, x: Tensor) -> dict:
     """
     t0 = time.perf_counter()
     x = x.detach()
-    cov_x, pd, min_eig = covariance_from_hessian(hessian_nll(problem, x))
+    cov_x, pd, min_eig = covariance_from_hessian(hessian_nll(problem, x) if hessian is None else hessian)
     out = covariance_summary(problem, x, cov_x, pd)
     out["positive_definite"] = pd
     out["min_eigenvalue"] = min_eig

@@ -104,6 +104,14 @@ Hillaire's isotropic approximation of it biased the aerosol (docs/photos.md)."""
 SIGMA_RELATIVE = 0.03
 """Relative error of a block's value besides its measured variance: JPEG, demosaicing, the sensor's
 non-linearity, the model's own error (docs/photos.md). [1]"""
+PHOTO_VALIDATION_SIGMA = {"aod_550": ("relative", 0.088), "angstrom_alpha": ("absolute", 0.20), "g": ("absolute", 0.004)}
+"""The photo path's expected error beyond the fit's own budget (a GUM Type B term, as MODIS and AERONET state an
+expected error from validation): what the 20 synthetic photos of ``scripts/photo_study.py`` (published camera
+sensitivities, Bayer, JPEG, flare, dome, vignetting, obstacles) put between the truth and the fit that no residual
+shows, because the camera's gains, saturations, vignetting and exposure absorb it. Each value is the maximum-likelihood
+s of e_i ~ N(0, sigma_i^2 + (s a_i)^2) over the 18 photos with a budget sigma (a_i the fitted AOD for ``relative``, 1
+for ``absolute``); held out on another 20 (docs/photos.md, "Honest sigma of a photo"). Added in quadrature to
+``aerosol.sigma``; ``aerosol.sigma_statistical`` is the budget's alone. (kind, value) [1]"""
 OUTLIER_THRESHOLD = 0.25
 """A block whose relative residual after the first fit exceeds this is a candidate obstacle. [1]"""
 OUTLIER_MAX_ELEVATION_DEG = 40.0
@@ -1809,10 +1817,7 @@ def photo_result(scene: PhotoScene, blocks: BlockImage, prep, problem, res, conf
                      "registration": None if reg is None else {
                          "shift_px": list(reg.shift), "iou": reg.iou, "pixels": reg.pixels, "step_px": reg.step,
                          "covers_sun": reg.covers_sun, "used": reg.used}}
-    result["aerosol"] = {"aod_550": vals["mie_aod_550"], "angstrom_alpha": vals["mie_angstrom_alpha"], "g": vals["mie_g"],
-                         "rayleigh_scale": vals["rayleigh_scale"],
-                         "sigma": {k: sig.get(n) for k, n in (("aod_550", "mie_aod_550"), ("angstrom_alpha", "mie_angstrom_alpha"),
-                                                               ("g", "mie_g"), ("rayleigh_scale", "rayleigh_scale"))}}
+    result["aerosol"] = aerosol_summary(vals, sig, problem.param.free)
     result["metrics"]["rmse_rel"] = float(torch.sqrt((rel ** 2).mean())) if rel.numel() else None
     result["pixels"] = {"used": int(blocks.usable.sum()) * step2, "masked": int((excluded & inside).sum()),
                         "censored": int(censored_px.sum()), "block_px": blocks.step,
@@ -1826,6 +1831,25 @@ def photo_result(scene: PhotoScene, blocks: BlockImage, prep, problem, res, conf
                                "projection); check RESULT.png")
     result["time"], result["location"] = scene.time, scene.location
     return _in_photo_pixels(result, scene.scale)
+
+
+def aerosol_summary(vals: dict, sig: dict, free) -> dict:
+    """RESULT.json's ``aerosol`` of a photo fit: the values; ``sigma_statistical``, the error budget's sigma (noise,
+    numerical, discrepancy: :mod:`skyfit.fit.budget`; None where the Laplace has none); ``sigma_validation``, the photo
+    path's expected error (:data:`PHOTO_VALIDATION_SIGMA`) of each fitted value; ``sigma``, the two in quadrature (None
+    where the statistical one is None)."""
+    names = (("aod_550", "mie_aod_550"), ("angstrom_alpha", "mie_angstrom_alpha"), ("g", "mie_g"), ("rayleigh_scale", "rayleigh_scale"))
+    out = {k: vals[n] for k, n in names}
+    stat = {k: sig.get(n) for k, n in names}
+    valid = {}
+    for k, n in names:
+        if k in PHOTO_VALIDATION_SIGMA and n in free:
+            kind, v = PHOTO_VALIDATION_SIGMA[k]
+            valid[k] = v * abs(float(vals[n])) if kind == "relative" else v
+    out["sigma"] = {k: (None if s is None else math.hypot(s, valid.get(k, 0.0))) for k, s in stat.items()}
+    out["sigma_statistical"] = stat
+    out["sigma_validation"] = valid
+    return out
 
 
 def _in_photo_pixels(result: dict, scale: int) -> dict:
