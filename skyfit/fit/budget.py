@@ -603,34 +603,39 @@ ROBUST_RHOS = ("huber", "cauchy")
 
 
 def _robust_weights(problem: FitProblem, preds, phys: dict, i: int) -> tuple[Tensor, Tensor, Tensor]:
-    """(psi, psi', r) of observation i's whitened residuals r under the loss's rho, (N_i, C_i) each, float64, zero at
-    censored elements."""
+    """(psi, psi', psi / r) of observation i's whitened residuals r under the loss's rho (the last, the IRLS weight, is
+    psi' where r = 0), (N_i, C_i) each, float64, zero at censored elements."""
     o = problem.observations[i]
     s = o.sigma[o.mask] * phys_noise_scale(problem, phys, i)
     r = problem.loss.residuals(preds[i], o.values[o.mask], s).to(torch.float64).detach().requires_grad_(True)
     (psi,) = torch.autograd.grad(problem.loss.rho_fn(r).sum(), r, create_graph=True)
     (dpsi,) = torch.autograd.grad(psi.sum(), r)  # psi' (rho acts elementwise)
     keep = _uncensored(problem, i, preds[i]).to(torch.float64)
-    return psi.detach() * keep, dpsi.detach() * keep, r.detach() * keep
+    psi, dpsi, r = psi.detach() * keep, dpsi.detach() * keep, r.detach()
+    small = r.abs() <= 1e-12
+    return psi, dpsi, torch.where(small, dpsi, psi / torch.where(small, torch.ones_like(r), r))
 
 
-def robust_hessian(problem: FitProblem, x: Tensor, H: Tensor, jac: list[Tensor]) -> Tensor:
-    """The Hessian H of a robust fit (n_elements x objective, (P, P)) with each element's curvature psi'(r) raised to
-    its IRLS weight psi(r) / r (Holland & Welsch 1977): H + sum_e (psi / r - psi') g_e g_e^T, g_e = dr_e/dx.
+def robust_hessian(problem: FitProblem, x: Tensor, jac: list[Tensor]) -> Tensor:
+    """The Gauss-Newton Hessian of a robust fit in IRLS weights (Holland & Welsch 1977), (P, P): sum_e w_e g_e g_e^T
+    with g_e = dr_e/dx and w = psi(r) / r, plus the exact Hessian of the objective's non-data part
+    (:meth:`FitProblem.penalty`: a photo's priors and sun datum), on the scale of n_elements x objective.
 
-    A redescending rho (Cauchy) has psi' < 0 beyond |r| = c, so outliers can make H indefinite and the Laplace
-    sigma undefined (2 of the 20 synthetic photos, docs/photos.md); psi / r - psi' >= 0 for Huber and Cauchy, so this
-    adds a positive semi-definite matrix and keeps the priors' and the model's own curvature."""
+    A redescending rho (Cauchy) has psi' < 0 beyond |r| = c, and a lagged fit is evaluated where its rebuilt tables
+    leave it a little off its optimum, so the exact Hessian can be indefinite (min eigenvalue -1515 on synthetic
+    photo 6, docs/photos.md) and the Laplace sigma undefined; w > 0, so this one is positive semi-definite wherever
+    the penalty's is."""
+    x = x.detach()
     with torch.no_grad():
         preds = problem.predict(x)
     phys = {k: v.detach() for k, v in problem.param.to_physical(x).items()}
     grads = whitened_jacobian(problem, jac, preds, 0.0, phys)
-    out = H.to(torch.float64).clone()
+    n = problem.n_elements
+    out = torch.autograd.functional.hessian(lambda v: problem.penalty(problem.param.to_physical(v)) * n,
+                                            x.to(torch.float64)).to(torch.float64)
     for i, g in enumerate(grads):
-        psi, dpsi, r = _robust_weights(problem, preds, phys, i)
-        small = r.abs() <= 1e-12
-        w = torch.where(small, dpsi, psi / torch.where(small, torch.ones_like(r), r))
-        out += torch.einsum("ncp,nc,ncq->pq", g, (w - dpsi).clamp_min(0.0), g)
+        w = _robust_weights(problem, preds, phys, i)[2]
+        out = out + torch.einsum("ncp,nc,ncq->pq", g, w, g)
     return 0.5 * (out + out.T)
 
 
@@ -647,7 +652,7 @@ def robust_sandwich_share(problem: FitProblem, jac: list[Tensor], preds, labels:
     cluster c out by one Newton step, d_c = (H - H_c)^-1 s_c with s_c = sum_{e in c} psi_e g_e and H_c = sum_{e in c}
     psi'_e g_e g_e^T, the cluster's part of H in its Gauss-Newton form (IRLS weights psi / r instead over-state it by
     ~25 % under Gaussian noise for the Cauchy rho, and H - H_c then nearly loses a direction: the white-noise share
-    came out 2-6 sigma; ``irls``: H is :func:`robust_hessian`'s, and H_c takes max(psi', psi / r) likewise), and
+    came out 2-6 sigma; ``irls``: H is :func:`robust_hessian`'s, and H_c takes psi / r likewise), and
     V = (G - 1) / G sum_c d_c d_c^T. The
     share is the positive part of V - H^-1 M_white H^-1: zero when the residuals are as independent as the noise
     model says, the excess when sky regions err together."""
@@ -659,10 +664,8 @@ def robust_sandwich_share(problem: FitProblem, jac: list[Tensor], preds, labels:
     info = torch.zeros(G, P, P, dtype=torch.float64, device=dev)
     white = torch.zeros(P, P, dtype=torch.float64, device=dev)
     for i, (g, lab) in enumerate(zip(grads, labels)):
-        psi, w, r = _robust_weights(problem, preds, phys, i)
-        if irls:  # H is robust_hessian's: the clusters' parts in the same form
-            small = r.abs() <= 1e-12
-            w = torch.maximum(w, torch.where(small, w, psi / torch.where(small, torch.ones_like(r), r)))
+        psi, dpsi, w_irls = _robust_weights(problem, preds, phys, i)
+        w = w_irls if irls else dpsi  # irls: H is robust_hessian's, the clusters' parts in the same form
         lab = lab.to(dev)
         scores.index_add_(0, lab, (g * psi.unsqueeze(-1)).sum(1))
         info.index_add_(0, lab, torch.einsum("ncp,nc,ncq->npq", g, w, g))
@@ -1132,11 +1135,10 @@ def uncertainty(problem: FitProblem, x: Tensor, sigma: str = "total", reference:
     if sigma == "total" and not lap["positive_definite"] and problem.loss.rho in ROBUST_RHOS:
         # outliers' negative curvature under a redescending rho: the IRLS curvature instead (robust_hessian)
         jac = prediction_jacobian(problem, x)
-        irls = laplace_summary(problem, x, hessian=robust_hessian(problem, x, H, jac))
+        irls = laplace_summary(problem, x, hessian=robust_hessian(problem, x, jac))
         if irls["positive_definite"]:
-            lap = {**irls, "hessian": f"IRLS: the Hessian of the {problem.loss.rho} loss was not positive definite "
-                                      f"(min eigenvalue {lap['min_eigenvalue']:.3g}); each element's curvature psi' "
-                                      "raised to psi / r"}
+            lap = {**irls, "hessian": f"Gauss-Newton in IRLS weights: the Hessian of the {problem.loss.rho} fit was not "
+                                      f"positive definite (min eigenvalue {lap['min_eigenvalue']:.3g})"}
             term = numerical_term(problem, x, lap, reference=reference, refits=refits, options=options, polish=polish)
             term.jacobian = jac
     if sigma == "noise" or not lap.get("positive_definite", True):

@@ -396,6 +396,11 @@ class FitProblem:
                                       reduction="sum")
         return total / max(self.n_elements, 1)
 
+    def penalty(self, phys: dict) -> Tensor:
+        """The objective's part that is not the data's, on the scale of the loss per element, shape () (none here;
+        :class:`skyfit.fit.photo.PhotoProblem`'s priors and sun datum)."""
+        return torch.zeros((), dtype=torch.float64)
+
     def objective(self, x: Tensor) -> Tensor:
         """Mean loss per used element (sample x channel), shape ()."""
         self.n_evaluations += 1

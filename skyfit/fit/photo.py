@@ -887,16 +887,21 @@ class PhotoProblem(FitProblem):
             total = term if total is None else total + term
         return total
 
-    def loss_from_predictions(self, preds, phys: dict) -> torch.Tensor:
-        loss = super().loss_from_predictions(preds, phys)
+    def penalty(self, phys: dict) -> torch.Tensor:
+        """The objective's part that is not the data's (the camera priors, the sun datum, the trust region), on the
+        scale of the loss per element, shape ()."""
+        out = torch.zeros((), dtype=phys["mie_aod_550"].dtype, device=phys["mie_aod_550"].device)
         if self.priors:
-            loss = loss + self.prior_penalty(phys) / max(self.n_elements, 1)
+            out = out + self.prior_penalty(phys) / max(self.n_elements, 1)
         if self.sun is not None:
-            loss = loss + self.sun_penalty(phys) / max(self.n_elements, 1)
+            out = out + self.sun_penalty(phys) / max(self.n_elements, 1)
         if self.trust is not None:
             excess = torch.relu((torch.log(phys["mie_aod_550"]) - self.trust[0]).abs() - self.trust[1])
-            loss = loss + TRUST_WEIGHT * excess * excess
-        return loss
+            out = out + TRUST_WEIGHT * excess * excess
+        return out
+
+    def loss_from_predictions(self, preds, phys: dict) -> torch.Tensor:
+        return super().loss_from_predictions(preds, phys) + self.penalty(phys)
 
 
 @dataclasses.dataclass
