@@ -76,6 +76,9 @@ def score(truth: dict, result: dict) -> dict:
         "aod_sigma": aer["sigma"].get("aod_550"),
         "sigma": {k: aer["sigma"].get(k) for k in ("aod_550", "angstrom_alpha", "g")},
         "sigma_statistical": aer.get("sigma_statistical"),
+        "budget": {part: {k: (((result.get("laplace") or {}).get("budget") or {}).get(part) or {}).get(n)
+                          for k, n in (("aod_550", "mie_aod_550"), ("angstrom_alpha", "mie_angstrom_alpha"), ("g", "mie_g"))}
+                   for part in ("sigma_noise", "sigma_numerical", "sigma_discrepancy", "sigma_discrepancy_sandwich_cr1")},
         "sigma_noise": {k: ((result.get("laplace") or {}).get("sigma_noise") or {}).get(n)
                         for k, n in (("aod_550", "mie_aod_550"), ("angstrom_alpha", "mie_angstrom_alpha"), ("g", "mie_g"))},
         "alpha_true": tp.get("angstrom_alpha", tp.get("mie_angstrom_alpha")), "alpha_fit": aer["angstrom_alpha"],

@@ -640,7 +640,7 @@ def robust_hessian(problem: FitProblem, x: Tensor, jac: list[Tensor]) -> Tensor:
 
 
 def robust_sandwich_share(problem: FitProblem, jac: list[Tensor], preds, labels: list[Tensor], phys: dict,
-                          cov_noise: Tensor, irls: bool = False) -> Tensor:
+                          cov_noise: Tensor, irls: bool = False, form: str = "jackknife") -> Tensor:
     """The discrepancy share of a robust fit (huber or cauchy rho on a linear or log residual): the cluster
     jackknife over sky regions of an M-estimator, less what independent elements would give, (P, P). [x units^2]
 
@@ -653,7 +653,7 @@ def robust_sandwich_share(problem: FitProblem, jac: list[Tensor], preds, labels:
     psi'_e g_e g_e^T, the cluster's part of H in its Gauss-Newton form (IRLS weights psi / r instead over-state it by
     ~25 % under Gaussian noise for the Cauchy rho, and H - H_c then nearly loses a direction: the white-noise share
     came out 2-6 sigma; ``irls``: H is :func:`robust_hessian`'s, and H_c takes psi / r likewise), and
-    V = (G - 1) / G sum_c d_c d_c^T. The
+    V = (G - 1) / G sum_c d_c d_c^T (``form`` "cr1": H^-1 (sum_c s_c s_c^T) H^-1 G / (G - 1), no leaving out). The
     share is the positive part of V - H^-1 M_white H^-1: zero when the residuals are as independent as the noise
     model says, the excess when sky regions err together."""
     grads = whitened_jacobian(problem, jac, preds, 0.0, phys)
@@ -674,8 +674,11 @@ def robust_sandwich_share(problem: FitProblem, jac: list[Tensor], preds, labels:
     n_used = int(used.sum())
     H_inv = cov_noise.to(torch.float64)
     H = _pinv_sym(H_inv)
-    d = torch.stack([_pinv_sym(H - info[c]) @ scores[c] for c in range(G) if bool(used[c])])
-    V = d.T @ d * ((n_used - 1) / max(n_used, 1))
+    if form == "cr1":
+        V = H_inv @ (scores.T @ scores) @ H_inv * (n_used / max(n_used - 1, 1))
+    else:
+        d = torch.stack([_pinv_sym(H - info[c]) @ scores[c] for c in range(G) if bool(used[c])])
+        V = d.T @ d * ((n_used - 1) / max(n_used, 1))
     return psd_part(V - H_inv @ white @ H_inv)
 
 
@@ -1042,6 +1045,8 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
         labels = sky_clusters(problem, phys, clusters, min_count)
         shares["sandwich"] = robust_sandwich_share(problem, term.jacobian, m_fit, labels, phys, cov_noise,
                                                    irls="hessian" in lap)
+        shares["sandwich_cr1"] = robust_sandwich_share(problem, term.jacobian, m_fit, labels, phys, cov_noise,
+                                                       irls="hessian" in lap, form="cr1")
         budget["discrepancy"].update(_cluster_meta(labels, P, min_count, form="jackknife", robust=problem.loss.rho))
     budget["floor_relative"] = f if applicable else None
     budget["floor_relative_68"] = f_range if applicable else None
@@ -1080,7 +1085,7 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
     budget["sigma_noise"] = lap["sigma"]
     budget["sigma_numerical"] = {n: float(s) for n, s in zip(names, s_num)}
     budget["sigma_discrepancy"] = {n: float(s) for n, s in zip(names, torch.sqrt(torch.diagonal(share).clamp_min(0.0)) * J.abs())}
-    for model in ("floor", "sandwich"):
+    for model in ("floor", "sandwich", "sandwich_cr1"):
         if model in shares:
             budget[f"sigma_discrepancy_{model}"] = {n: float(s) for n, s in zip(
                 names, torch.sqrt(torch.diagonal(shares[model]).clamp_min(0.0)) * J.abs())}
