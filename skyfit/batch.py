@@ -428,7 +428,8 @@ def result_row(item: BatchItem, result: dict | None, info: dict) -> dict:
     ``rmse_rel`` (relative RMS over the pixels used), the fitted camera (``camera_projection``, heading
     ``camera_up_azimuth_deg``, ``camera_tilt_east_deg``/``_north_deg``), ``sun_separation_deg`` (computed
     vs detected sun) and ``pixels_used``; its aerosol is in ``mie_aod_550``, ``mie_angstrom_alpha``,
-    ``mie_g`` (RESULT.json's ``aerosol``) with ``sigma_`` columns."""
+    ``mie_g`` (RESULT.json's ``aerosol``) with ``sigma_`` columns (its ``sigma``: the budget's and the photo path's
+    validation term, :func:`skyfit.fit.photo.aerosol_summary`)."""
     row: dict = {"item": item.key, "path": item.path, "kind": item.kind, "status": info.get("status", "ok"), "time": None,
                  "latitude_deg": None, "longitude_deg": None, "elevation_m": None,
                  "sun_zenith_deg": None, "sun_azimuth_deg": None}
@@ -466,6 +467,10 @@ def result_row(item: BatchItem, result: dict | None, info: dict) -> dict:
                        camera_up_azimuth_deg=cam.get("up_azimuth_deg"), camera_tilt_east_deg=tilt[0],
                        camera_tilt_north_deg=tilt[1], sun_separation_deg=(result.get("sun") or {}).get("separation_deg"),
                        pixels_used=(result.get("pixels") or {}).get("used"))
+            aer = result.get("aerosol") or {}
+            for n, k in (("mie_aod_550", "aod_550"), ("mie_angstrom_alpha", "angstrom_alpha"), ("mie_g", "g")):
+                if k in (aer.get("sigma") or {}):  # the photo's total: the budget's and the validation term
+                    row[f"sigma_{n}"] = aer["sigma"][k]
             if row["time"] is None:
                 row["time"] = result.get("time")
     row.update(wall_s=info.get("wall_s"), cpu_s=info.get("cpu_s"), worker=info.get("worker"),
