@@ -585,16 +585,22 @@ def sandwich_covariance(problem: FitProblem, jac: list[Tensor], preds, residual_
         lab = lab.to(scores.device)
         scores.index_add_(0, lab, (j * r.unsqueeze(-1)).sum(1))  # one score per sample, then per cluster
         info.index_add_(0, lab, torch.einsum("ncp,ncq->npq", j, j))
-    used = info.diagonal(dim1=-2, dim2=-1).sum(-1) > 0
-    g = int(used.sum())
     A = info.sum(0)
     A_inv = _pinv_sym(A)
-    if form == "cr1":
-        V = A_inv @ (scores.T @ scores) @ A_inv * (g / max(g - 1, 1))
-    else:
-        d = torch.stack([_pinv_sym(A - info[c]) @ scores[c] for c in range(G) if bool(used[c])])
-        V = d.T @ d * ((g - 1) / max(g, 1))
+    V = _cluster_sandwich(A, A_inv, scores, info, form)
     return 0.5 * (V + V.T), A_inv
+
+
+def _cluster_sandwich(A: Tensor, A_inv: Tensor, scores: Tensor, info: Tensor, form: str) -> Tensor:
+    """V of the cluster scores s_c (G, P) and their information parts A_c (G, P, P) about the bread A (P, P):
+    ``cr1`` A^-1 (sum_c s_c s_c^T) A^-1 G / (G - 1), else the jackknife (G - 1) / G sum_c d_c d_c^T with
+    d_c = (A - A_c)^-1 s_c; G counts the clusters with used elements."""
+    used = info.diagonal(dim1=-2, dim2=-1).sum(-1) > 0
+    g = int(used.sum())
+    if form == "cr1":
+        return A_inv @ (scores.T @ scores) @ A_inv * (g / max(g - 1, 1))
+    d = torch.stack([_pinv_sym(A - info[c]) @ scores[c] for c in range(info.shape[0]) if bool(used[c])])
+    return d.T @ d * ((g - 1) / max(g, 1))
 
 
 ROBUST_RHOS = ("huber", "cauchy")
@@ -670,15 +676,8 @@ def robust_sandwich_share(problem: FitProblem, jac: list[Tensor], preds, labels:
         scores.index_add_(0, lab, (g * psi.unsqueeze(-1)).sum(1))
         info.index_add_(0, lab, torch.einsum("ncp,nc,ncq->npq", g, w, g))
         white += torch.einsum("ncp,nc,ncq->pq", g, psi**2, g)
-    used = info.diagonal(dim1=-2, dim2=-1).sum(-1) > 0
-    n_used = int(used.sum())
     H_inv = cov_noise.to(torch.float64)
-    H = _pinv_sym(H_inv)
-    if form == "cr1":
-        V = H_inv @ (scores.T @ scores) @ H_inv * (n_used / max(n_used - 1, 1))
-    else:
-        d = torch.stack([_pinv_sym(H - info[c]) @ scores[c] for c in range(G) if bool(used[c])])
-        V = d.T @ d * ((n_used - 1) / max(n_used, 1))
+    V = _cluster_sandwich(_pinv_sym(H_inv), H_inv, scores, info, form)
     return psd_part(V - H_inv @ white @ H_inv)
 
 
