@@ -62,10 +62,15 @@ def sun_errors(truth: dict, sun: dict) -> dict:
     return {"model": ang(sun["model_px"]), "detected": ang(sun["detected_px"]), "centroid": ang(sun.get("centroid_px"))}
 
 
+AEROSOL_NAMES = (("aod_550", "mie_aod_550"), ("angstrom_alpha", "mie_angstrom_alpha"), ("g", "mie_g"))
+"""RESULT.json aerosol keys and the fit's parameter names of the three scored values."""
+
+
 def score(truth: dict, result: dict) -> dict:
     """Fit vs truth of one case."""
     tp = truth["atmosphere"]["parameters"]
     aer, cam, sun = result["aerosol"], result["camera"], result["sun"]
+    budget = (result.get("laplace") or {}).get("budget") or {}
     tc = truth["camera"]
     return {
         "seed": truth["seed"], "bracket": truth["bracket"] is not None, "projection_true": tc["projection"],
@@ -76,11 +81,9 @@ def score(truth: dict, result: dict) -> dict:
         "aod_sigma": aer["sigma"].get("aod_550"),
         "sigma": {k: aer["sigma"].get(k) for k in ("aod_550", "angstrom_alpha", "g")},
         "sigma_statistical": aer.get("sigma_statistical"),
-        "budget": {part: {k: (((result.get("laplace") or {}).get("budget") or {}).get(part) or {}).get(n)
-                          for k, n in (("aod_550", "mie_aod_550"), ("angstrom_alpha", "mie_angstrom_alpha"), ("g", "mie_g"))}
+        "budget": {part: {k: (budget.get(part) or {}).get(n) for k, n in AEROSOL_NAMES}
                    for part in ("sigma_noise", "sigma_numerical", "sigma_discrepancy", "sigma_discrepancy_sandwich_cr1")},
-        "sigma_noise": {k: ((result.get("laplace") or {}).get("sigma_noise") or {}).get(n)
-                        for k, n in (("aod_550", "mie_aod_550"), ("angstrom_alpha", "mie_angstrom_alpha"), ("g", "mie_g"))},
+        "sigma_noise": {k: ((result.get("laplace") or {}).get("sigma_noise") or {}).get(n) for k, n in AEROSOL_NAMES},
         "alpha_true": tp.get("angstrom_alpha", tp.get("mie_angstrom_alpha")), "alpha_fit": aer["angstrom_alpha"],
         "g_true": tp.get("mie_g"), "g_fit": aer["g"],
         "heading_err_deg": circular_diff_deg(cam["up_azimuth_deg"], tc["up_azimuth_deg"]),

@@ -75,7 +75,7 @@ from ..scattering.bruneton_tables import TableSizes
 from ..scattering.multiple import precompute, sky_radiance
 from ..scattering.single import ray_parameters
 from ..transmittance import make_integrator
-from .laplace import (bound_slots, covariance_summary, derived_functions, display_names, hessian_nll, laplace_summary,
+from .laplace import (bound_slots, covariance_summary, derived_functions, display_names, laplace_summary,
                       physical_slot_values, transform_jacobian)
 from .model import FitProblem, SkyModel
 from .optimise import FitOptions, fit
@@ -646,7 +646,7 @@ def robust_hessian(problem: FitProblem, x: Tensor, jac: list[Tensor]) -> Tensor:
 
 
 def robust_sandwich_share(problem: FitProblem, jac: list[Tensor], preds, labels: list[Tensor], phys: dict,
-                          cov_noise: Tensor, irls: bool = False, form: str = "jackknife") -> Tensor:
+                          cov_noise: Tensor, irls: bool = False, forms: tuple = ("jackknife",)) -> dict[str, Tensor]:
     """The discrepancy share of a robust fit (huber or cauchy rho on a linear or log residual): the cluster
     jackknife over sky regions of an M-estimator, less what independent elements would give, (P, P). [x units^2]
 
@@ -659,9 +659,10 @@ def robust_sandwich_share(problem: FitProblem, jac: list[Tensor], preds, labels:
     psi'_e g_e g_e^T, the cluster's part of H in its Gauss-Newton form (IRLS weights psi / r instead over-state it by
     ~25 % under Gaussian noise for the Cauchy rho, and H - H_c then nearly loses a direction: the white-noise share
     came out 2-6 sigma; ``irls``: H is :func:`robust_hessian`'s, and H_c takes psi / r likewise), and
-    V = (G - 1) / G sum_c d_c d_c^T (``form`` "cr1": H^-1 (sum_c s_c s_c^T) H^-1 G / (G - 1), no leaving out). The
+    V = (G - 1) / G sum_c d_c d_c^T ("cr1": H^-1 (sum_c s_c s_c^T) H^-1 G / (G - 1), no leaving out). The
     share is the positive part of V - H^-1 M_white H^-1: zero when the residuals are as independent as the noise
-    model says, the excess when sky regions err together."""
+    model says, the excess when sky regions err together. Returns form -> share for each of ``forms`` (the scores
+    are summed once)."""
     grads = whitened_jacobian(problem, jac, preds, 0.0, phys)
     P = grads[0].shape[-1]
     dev = grads[0].device
@@ -677,8 +678,9 @@ def robust_sandwich_share(problem: FitProblem, jac: list[Tensor], preds, labels:
         info.index_add_(0, lab, torch.einsum("ncp,nc,ncq->npq", g, w, g))
         white += torch.einsum("ncp,nc,ncq->pq", g, psi**2, g)
     H_inv = cov_noise.to(torch.float64)
-    V = _cluster_sandwich(_pinv_sym(H_inv), H_inv, scores, info, form)
-    return psd_part(V - H_inv @ white @ H_inv)
+    H = _pinv_sym(H_inv)
+    noise = H_inv @ white @ H_inv
+    return {form: psd_part(_cluster_sandwich(H, H_inv, scores, info, form) - noise) for form in forms}
 
 
 def psd_part(M: Tensor) -> Tensor:
@@ -1042,17 +1044,16 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
         if term.jacobian is None:
             term.jacobian = prediction_jacobian(problem, x)
         labels = sky_clusters(problem, phys, clusters, min_count)
-        shares["sandwich"] = robust_sandwich_share(problem, term.jacobian, m_fit, labels, phys, cov_noise,
-                                                   irls="hessian" in lap)
-        shares["sandwich_cr1"] = robust_sandwich_share(problem, term.jacobian, m_fit, labels, phys, cov_noise,
-                                                       irls="hessian" in lap, form="cr1")
+        both = robust_sandwich_share(problem, term.jacobian, m_fit, labels, phys, cov_noise, irls="hessian" in lap,
+                                     forms=("jackknife", "cr1"))
+        shares["sandwich"], shares["sandwich_cr1"] = both["jackknife"], both["cr1"]
         budget["discrepancy"].update(_cluster_meta(labels, P, min_count, form="jackknife", robust=problem.loss.rho))
     budget["floor_relative"] = f if applicable else None
     budget["floor_relative_68"] = f_range if applicable else None
     if floor and not applicable:
         budget["floor_note"] = (f"no floor for the {problem.loss.name} loss (it needs rho squared on a linear or log residual)"
                                 + ("; the discrepancy is the robust cluster sandwich" if robust else ""))
-    share = shares.get("sandwich" if robust and not applicable else discrepancy, zero)
+    share = shares.get("sandwich" if robust else discrepancy, zero)
     if expansion is None and expand:
         expansion = phase_expansion(problem, x, term, reference=reference, options=options)
     e = torch.zeros(P, dtype=torch.float64) if expansion is None else expansion["e"].to(torch.float64)
@@ -1133,8 +1134,7 @@ def uncertainty(problem: FitProblem, x: Tensor, sigma: str = "total", reference:
         raise FitError(f"sigma must be one of {', '.join(SIGMA_MODES)}, got {sigma!r}")
     if discrepancy not in DISCREPANCY_MODELS:
         raise FitError(f"discrepancy must be one of {', '.join(DISCREPANCY_MODELS)}, got {discrepancy!r}")
-    H = hessian_nll(problem, x)
-    lap = laplace_summary(problem, x, hessian=H)
+    lap = laplace_summary(problem, x)
     term = None
     if sigma == "total" and not lap["positive_definite"] and problem.loss.rho in ROBUST_RHOS:
         # outliers' negative curvature under a redescending rho: the IRLS curvature instead (robust_hessian)

@@ -76,6 +76,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import functools
 import logging
 import math
 import os
@@ -463,9 +464,7 @@ def _read_exif(path: str) -> dict:
     cs = first("EXIF ColorSpace")
     if cs is not None and getattr(cs, "values", None):
         out["color_space"] = int(cs.values[0])
-    t = first("Interoperability InteroperabilityIndex")
-    if t is not None:
-        out["interop_index"] = str(t.printable if hasattr(t, "printable") else t).strip().strip("\x00").strip() or None
+    out["interop_index"] = _exif_text(tags, "Interoperability InteroperabilityIndex")
     return out
 
 
@@ -502,7 +501,7 @@ class _Frame:
     mono: bool = False                        # a grey image: its one channel in all three of ``codes``
     icc: IccProfile | None = None             # the embedded matrix/TRC profile, if any
     icc_problem: str | None = None            # why an embedded profile is not used
-    icc_source: str = "embedded"              # or "exif": no profile, the EXIF colour space declares Adobe RGB
+    icc_declared: str | None = None           # no profile: what in EXIF declares Adobe RGB (_exif_colour_space)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -693,9 +692,9 @@ def _read_frame(path: str, kind: str) -> _Frame:
     frame = _ldr_frame(path, kind, arr, exif, bits)
     frame.icc, frame.icc_problem = _embedded_icc(path, kind, frame.mono)
     if frame.icc is None and frame.icc_problem is None and not frame.mono:
-        frame.icc, frame.icc_problem = _exif_colour_space(path, exif)
-        if frame.icc is not None:
-            frame.icc_source = "exif"
+        frame.icc_declared, frame.icc_problem = _exif_colour_space(path, exif)
+        if frame.icc_declared is not None:
+            frame.icc = _adobe_rgb_profile()
     return frame
 
 
@@ -703,24 +702,31 @@ ADOBE_RGB = "Adobe RGB (1998)"
 EXIF_UNCALIBRATED = 0xFFFF
 
 
-def _exif_colour_space(path: str, exif: dict) -> tuple[IccProfile | None, str | None]:
-    """Adobe RGB declared by EXIF alone, as Canon's and other cameras' JPEGs in Adobe RGB mode do without a profile:
-    ColorSpace "uncalibrated" (0xFFFF) with the interoperability index "R03" (DCF 2.0's option colour space), or a DCF
-    option file name ("_" first, e.g. ``_MG_1234.JPG``); ColorSpace 2 (Adobe RGB, written by some software though
-    not in the EXIF standard). Uncalibrated with neither: not sRGB, space unknown; read as sRGB and say so."""
-    cs = exif.get("color_space")
-    if cs is None or cs == 1:
-        return None, None
-    r03 = (exif.get("interop_index") or "").upper() == "R03"
-    dcf_option = os.path.basename(path).startswith("_")
-    if cs == 2 or (cs == EXIF_UNCALIBRATED and (r03 or dcf_option)):
-        from ..camera.icc import profile_for
+@functools.lru_cache(maxsize=1)
+def _adobe_rgb_profile() -> IccProfile:
+    """Adobe RGB (1998)'s profile (:func:`skyfit.camera.icc.profile_for`), built once for every frame that declares it."""
+    from ..camera.icc import profile_for
 
-        return parse_icc(profile_for(ADOBE_RGB)), None
-    if cs == EXIF_UNCALIBRATED:
-        return None, ("its EXIF colour space is 'uncalibrated' (not sRGB) with no ICC profile and no interoperability "
-                      "index R03 (Adobe RGB): the space is unknown; read as sRGB (embed the profile, or convert to sRGB)")
-    return None, None
+    return parse_icc(profile_for(ADOBE_RGB))
+
+
+def _exif_colour_space(path: str, exif: dict) -> tuple[str | None, str | None]:
+    """(what declares Adobe RGB, why the space is unknown) of a frame without a profile, from EXIF alone, as Canon's
+    and other cameras' JPEGs in Adobe RGB mode declare it: ColorSpace "uncalibrated" (0xFFFF) with the
+    interoperability index "R03" (DCF 2.0's option colour space), or a DCF option file name ("_" first, e.g.
+    ``_MG_1234.JPG``); ColorSpace 2 (Adobe RGB, written by some software though not in the EXIF standard).
+    Uncalibrated with neither: not sRGB, space unknown; read as sRGB and say so."""
+    cs = exif.get("color_space")
+    if cs == 2:
+        return "ColorSpace 2", None
+    if cs != EXIF_UNCALIBRATED:
+        return None, None
+    if (exif.get("interop_index") or "").upper() == "R03":
+        return "interoperability index R03", None
+    if os.path.basename(path).startswith("_"):
+        return "a DCF option file name", None
+    return None, ("its EXIF colour space is 'uncalibrated' (not sRGB) with no ICC profile and no interoperability "
+                  "index R03 (Adobe RGB): the space is unknown; read as sRGB (embed the profile, or convert to sRGB)")
 
 
 def _embedded_icc(path: str, kind: str, mono: bool) -> tuple[IccProfile | None, str | None]:
@@ -786,17 +792,15 @@ def _icc_meta(frame: _Frame, resp: _Response, source: str, notes: list[str]) -> 
     if prof is None:
         return {}
     srgb = prof.is_srgb()
-    out = {"description": prof.description, "srgb": srgb, "source": frame.icc_source,
+    out = {"description": prof.description, "srgb": srgb, "source": "embedded" if frame.icc_declared is None else "exif",
            "rgb_from_xyz": None if prof.grey or srgb else prof.rgb_from_xyz().tolist()}
     if not srgb:
         how = "its tone curves decode the codes" if source == "icc" else f"the codes are decoded as {resp.name} ({source})"
         colour = "" if prof.grey else "; its primaries give the channels' colour (the fit's default camera)"
-        if frame.icc_source == "exif":
-            why = ("interoperability index R03" if (frame.exif.get("interop_index") or "").upper() == "R03"
-                   else "a DCF option file name" if frame.exif.get("color_space") == EXIF_UNCALIBRATED
-                   else "ColorSpace 2")
+        if frame.icc_declared is not None:
             how = "its power law 563/256 decodes the codes" if source == "icc" else how
-            notes.append(f"the photo has no ICC profile and its EXIF declares Adobe RGB (1998) ({why}): {how}{colour}")
+            notes.append(f"the photo has no ICC profile and its EXIF declares Adobe RGB (1998) ({frame.icc_declared}): "
+                         f"{how}{colour}")
         else:
             notes.append(f"the photo carries the ICC profile {prof.description or '(unnamed)'!r}, not sRGB: {how}{colour}")
     return {"icc": out}
