@@ -267,6 +267,10 @@ class FitProblem:
         self.frozen_slope: tuple[list[Tensor], Tensor] | None = None
         """(D per observation (N_i, W), ln tau_0 (W,)): the frozen factor's first-order dependence on the aerosol
         optical depth (:meth:`frozen_factor_at`), or None (held fixed)."""
+        self.frozen_follow: tuple[list[Tensor], object] | None = None
+        """(the frozen factor it belongs to, f(phys, i) -> (N_i, W)): the factor re-evaluated at the current view
+        and sun geometry (:func:`skyfit.fit.photo.multiple_from_tables`), used while :attr:`frozen_factor` is that
+        factor and the geometry is fitted (heading, tilt, lens); None: the factor stays on each sample."""
 
     # -- forward ----------------------------------------------------------------
     def sun_vectors(self, phys: dict, i: int) -> Tensor:
@@ -296,15 +300,25 @@ class FitProblem:
             d = lens_directions(d, k)  # image data: the lens's own projection
         return tilt_directions(d, tn, te)
 
-    def frozen_factor_at(self, atm: Atmosphere, i: int) -> Tensor:
+    def frozen_factor_at(self, atm: Atmosphere, i: int, phys: dict | None = None) -> Tensor:
         """Observation i's frozen multiple-scattering factor F (N_i, W), followed to first order in the aerosol
         optical depth when :attr:`frozen_slope` = (D, ln tau_0(lambda)) is set: F = 1 + (F_0 - 1) (tau(lambda) /
         tau_0(lambda))^D, D the logarithmic derivative of the multiple-over-single ratio per sample and wavelength
         (:func:`skyfit.fit.photo.aod_slope`) and tau(lambda) the aerosol's optical depth at each wavelength
         (extinction x column height). Radiative transfer is monochromatic, so F at a wavelength follows that
         wavelength's optical depth: one slope covers the AOD and the Angstrom exponent alike. The fit then sees how
-        the multiple scattering's share grows with the aerosol, which a factor held fixed hides. [1]"""
-        f = self.frozen_factor[i]
+        the multiple scattering's share grows with the aerosol, which a factor held fixed hides.
+
+        With ``phys`` and :attr:`frozen_follow` set for this factor, F_0 is that of the current view and sun geometry
+        rather than of each sample's geometry when it was frozen: a factor held per sample while the fit turns the
+        camera (heading, tilt) keeps the multiple-scattering pattern where the camera was, and the lagged refreshes
+        then chased it (a hazy photo under a high sun drifted 20 deg in heading, its loss rising 0.77 -> 4.1 over the
+        refreshes; docs/photos.md). [1]"""
+        follow = self.frozen_follow
+        if phys is not None and follow is not None and follow[0] is self.frozen_factor:
+            f = follow[1](phys, i)
+        else:
+            f = self.frozen_factor[i]
         if self.frozen_slope is None:
             return f
         slope, log_tau0 = self.frozen_slope
@@ -324,7 +338,7 @@ class FitProblem:
                 sun = sun[o.mask]
             rad = renderers[o.altitude_m](self.view_directions(phys, i), sun)
             if self.frozen_factor is not None:
-                rad = rad * self.frozen_factor_at(atm, i)
+                rad = rad * self.frozen_factor_at(atm, i, phys)
             out.append(rad * self.solar_scale[i])
         return out
 
