@@ -3,6 +3,7 @@ frozen per fit and refreshed at its result (skyfit.fit.model.SkyModel.lagged, sk
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 import torch
@@ -249,3 +250,37 @@ def test_factor_follows_a_turned_camera(sky):
     err_followed = float(((followed - rebuilt).abs() / share).median())
     assert err_held > 0.05  # the multiple share at a sample depends on where the camera points
     assert err_followed < 0.2 * err_held
+
+
+@pytest.mark.parametrize("losses, stands, runaway", [((1.0, 0.5, 0.9), 1, True), ((1.0, 0.5, 0.7, 0.6), 3, False)])
+def test_runaway_refreshes_stop_and_the_best_fit_stands(sky, monkeypatch, losses, stands, runaway):
+    """skyfit.fit.photo.lagged_fit: a refresh whose fit ends above MS_RUNAWAY (1.5) times the best loss so far stops
+    the refreshes; the best fit stands with the factor it was fitted against (not the one built after it). Below
+    that the refreshes go on and the last fit stands. The optimiser and the table builds are stubbed: each fit moves x and returns the next
+    loss, each build installs a new factor, so which factor a result carries can be told."""
+    import dataclasses
+
+    import skyfit.fit.photo as photo
+    from skyfit.fit.optimise import FitOptions, OptimiseResult
+
+    problem = _problem(sky)
+    builds, fits = [], []
+
+    def build(p, x, bruneton=None, **kw):
+        p.frozen_factor = [torch.full((1,), float(len(builds)))]
+        builds.append(p.frozen_factor)
+
+    def optimise(p, options):
+        k = len(fits)
+        fits.append(p.frozen_factor)
+        x = p.param.initial_vector() + 0.1 * (k + 1)  # moves every value: no convergence by tolerance
+        return OptimiseResult(x, losses[k], {}, list(p.param.free), {}, [], [])
+
+    monkeypatch.setattr(photo, "freeze_tables", build)
+    monkeypatch.setattr(photo, "optimise", optimise)
+    monkeypatch.setattr(photo, "factor_change", lambda old, new: math.inf)
+    res = photo.lagged_fit(problem, dataclasses.replace(FitOptions(), adam_steps=0), refreshes=len(losses), bruneton=object())
+    assert res.loss == losses[stands] and len(fits) == len(losses)
+    assert bool(res.convergence.get("ms_runaway")) is runaway
+    if runaway:
+        assert problem.frozen_factor is fits[stands]  # the factor the standing fit used, not the later builds
