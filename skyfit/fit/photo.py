@@ -1048,6 +1048,9 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
             # the priors and the sun datum live in the objective, not in residuals
             options = dataclasses.replace(options, method="lbfgs")
         res = lagged_fit(problem, options, refreshes, bruneton=bruneton, tables=tables, refresh_last=refresh_last)
+        if res.convergence.get("ms_runaway") and target == TARGET_SAMPLES:
+            sc.notes.append(f"the multiple-scattering refreshes of a {sc.camera.projection} fit ran away (a loss over "
+                            f"{MS_RUNAWAY:g}x the best refresh's); the best refresh stands (loss {res.loss:.5g})")
         shared["builds"] = shared.get("builds", 0) + getattr(problem, "table_builds", 0)
         return blocks, prep, problem, res
 
@@ -1450,6 +1453,13 @@ def multiple_from_tables(problem: FitProblem, x: torch.Tensor, tables, nodes: np
             return (sky_radiance(tables, sub, r, mu, mu_s, nu, below_mu_s_min="clamp"),
                     sky_radiance(tables, sub, r, mu, mu_s, nu, orders=1, below_mu_s_min="clamp"))
 
+        def factor(every: torch.Tensor, first: torch.Tensor, i: int) -> torch.Tensor:
+            """1 + (every - first) / first x observation i's anchor, on the model's wavelengths, (N_i, W)."""
+            ok, anchor = anchors[i]
+            f = 1.0 + torch.where(ok, (every - first) / torch.where(ok, first, torch.ones_like(first)),
+                                  torch.zeros_like(first)) * anchor
+            return f if interp is None else f @ interp
+
         for i, o in enumerate(problem.observations):
             every, first = ratio(phys, i)
             # f = 1 + (every - first) / first * anchor: anchor = first / live single where the live single scattering
@@ -1462,15 +1472,11 @@ def multiple_from_tables(problem: FitProblem, x: torch.Tensor, tables, nodes: np
             else:
                 anchor = ok.to(first.dtype)
             anchors.append((ok, anchor))
-            f = 1.0 + torch.where(ok, (every - first) / torch.where(ok, first, torch.ones_like(first)), torch.zeros_like(first)) * anchor
-            out.append(f if interp is None else f @ interp)
+            out.append(factor(every, first, i))
 
     def follow(ph: dict, i: int) -> torch.Tensor:
         """Observation i's factor at the geometry of ``ph`` (the same tables and anchor): differentiable in it."""
-        every, first = ratio(ph, i)
-        ok, anchor = anchors[i]
-        f = 1.0 + torch.where(ok, (every - first) / torch.where(ok, first, torch.ones_like(first)), torch.zeros_like(first)) * anchor
-        return f if interp is None else f @ interp
+        return factor(*ratio(ph, i), i)
 
     if follow_geometry:  # the problem's factor from now on (not a stepped one's, :func:`aod_slope`)
         moving = any(n in problem.param.free for n in GEOMETRY_NAMES)
