@@ -538,6 +538,13 @@ def scene_masks(photo: LinearPhoto, cam: FisheyeCamera, detected, sun_zenith_deg
     return masks
 
 
+def with_camera(scene: PhotoScene, cam: FisheyeCamera) -> PhotoScene:
+    """The scene under another candidate camera, its masks made again for that camera (the user's kept); notes and
+    candidates are the same lists."""
+    return dataclasses.replace(scene, camera=cam, masks=scene_masks(scene.photo, cam, scene.detected_sun, scene.sun_zenith_deg,
+                                                                    scene.sun_azimuth_deg, scene.masks.get("user")))
+
+
 # -- blocks ---------------------------------------------------------------------------------------
 @dataclasses.dataclass
 class BlockImage:
@@ -1071,18 +1078,13 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         if len(close) > 1:
             scores = []
             for c in close:
-                sc = dataclasses.replace(scene, camera=c.camera, masks=scene_masks(scene.photo, c.camera, scene.detected_sun,
-                                                                                    scene.sun_zenith_deg, scene.sun_azimuth_deg,
-                                                                                    scene.masks.get("user")))
-                scores.append(quick_run(sc).loss)
+                scores.append(quick_run(with_camera(scene, c.camera)).loss)
             k, k2 = (int(v) for v in np.argsort(scores)[:2])
             scene.notes.append("projection chosen by the fit's loss among " + ", ".join(
                 f"{c.projection} {v:.4g}" for c, v in zip(close, scores)))
             chosen, runner_up = close[k], close[k2]
             if chosen is not best:
-                scene = dataclasses.replace(scene, camera=chosen.camera, masks=scene_masks(
-                    scene.photo, chosen.camera, scene.detected_sun, scene.sun_zenith_deg, scene.sun_azimuth_deg,
-                    scene.masks.get("user")))
+                scene = with_camera(scene, chosen.camera)
             scene.candidates = [chosen] + [c for c in scene.candidates if c is not chosen]
     timings["projection"] = _now() - t0
 
@@ -1121,9 +1123,7 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         # the first was, from the same start (from the first fit's values it stayed in that fit's basin: held-out
         # case 14, 2.19 against 1.54), and the lower loss keeps its projection
         t_r = _now()
-        sc_r = dataclasses.replace(scene, camera=runner_up.camera, masks=scene_masks(
-            scene.photo, runner_up.camera, scene.detected_sun, scene.sun_zenith_deg, scene.sun_azimuth_deg,
-            scene.masks.get("user")))
+        sc_r = with_camera(scene, runner_up.camera)
         fit_r = run(sc_r, start=start, tables=shared.get("tables"))
         better = fit_r[3].loss < res.loss
         scene.notes.append(f"the runner-up projection {runner_up.projection} fitted from the same start: loss "
@@ -1444,7 +1444,7 @@ def multiple_from_tables(problem: FitProblem, x: torch.Tensor, tables, nodes: np
             finally:
                 problem.frozen_factor = held
 
-        def ratio(ph: dict, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        def lookup(ph: dict, i: int) -> tuple[torch.Tensor, torch.Tensor]:
             """The tables' (all orders, first order) at observation i's geometry under ``ph``, each (N_i, W_nodes)."""
             o = problem.observations[i]
             sun = problem.sun_vectors(ph, i)
@@ -1461,7 +1461,7 @@ def multiple_from_tables(problem: FitProblem, x: torch.Tensor, tables, nodes: np
             return f if interp is None else f @ interp
 
         for i, o in enumerate(problem.observations):
-            every, first = ratio(phys, i)
+            every, first = lookup(phys, i)
             # f = 1 + (every - first) / first * anchor: anchor = first / live single where the live single scattering
             # anchors the factor (the tables' error in single scattering then cancels at x), else 1 (every / first)
             ok = first > 1e-12 * first.abs().max()
@@ -1476,7 +1476,7 @@ def multiple_from_tables(problem: FitProblem, x: torch.Tensor, tables, nodes: np
 
     def follow(ph: dict, i: int) -> torch.Tensor:
         """Observation i's factor at the geometry of ``ph`` (the same tables and anchor): differentiable in it."""
-        return factor(*ratio(ph, i), i)
+        return factor(*lookup(ph, i), i)
 
     if follow_geometry:  # the problem's factor from now on (not a stepped one's, :func:`aod_slope`)
         moving = any(n in problem.param.free for n in GEOMETRY_NAMES)
