@@ -2,6 +2,7 @@
 frozen per fit and refreshed at its result (skyfit.fit.model.SkyModel.lagged, skyfit.fit.photo.lagged_fit)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -119,6 +120,46 @@ def test_followed_factor_tracks_the_rebuilt_one(sky, change):
     err_followed = torch.quantile(((followed - 1.0) / (rebuilt - 1.0) - 1.0).abs().flatten(), q)
     assert bool((err_frozen > 0.1).all())  # the multiple share does move with the aerosol
     assert bool((err_followed < 0.25 * err_frozen).all())
+
+
+@pytest.mark.parametrize("dg", [0.04, -0.05])
+def test_factor_followed_in_g_tracks_the_rebuilt_one(sky, dg):
+    """With g free the factor is also followed to first order in g (skyfit.fit.photo.g_slope, one more build):
+    after g moves by +0.04 or -0.05 (the trust region's reach) it is much closer to the factor rebuilt from new
+    tables at the new g than the factor held in g, and the followed factor's derivative in g is that of the
+    exponent D_g (g - g_0) (autograd against central differences)."""
+    from skyfit.fit.photo import PhotoProblem
+
+    problem = PhotoProblem.of(_problem(sky, ["mie_aod_550", "mie_g", "exposure"]), {})
+    ms = problem.model.factor_model()
+    x0 = problem.param.initial_vector()
+    freeze_tables(problem, x0, ms, wavelength_nodes_count=None)
+    assert problem.frozen_slope_g is not None and problem.table_builds == 3  # at x, AOD stepped, g stepped
+    vals = problem.param.free_dict(x0)
+    vals["mie_g"] = vals["mie_g"] + dg
+    x1 = problem.param.to_unconstrained(vals)
+    with torch.no_grad():
+        atm1 = problem.param.atmosphere(problem.param.to_physical(x1))
+        frozen = problem.frozen_factor[0].clone()
+        followed = problem.frozen_factor_at(atm1, 0)
+    g = atm1.mie_g.clone().requires_grad_(True)
+    atm_g = dataclasses.replace(atm1, mie_g=g)
+    total = problem.frozen_factor_at(atm_g, 0).sum()
+    (grad,) = torch.autograd.grad(total, g)
+    with torch.no_grad():
+        h = 1e-6
+        up = problem.frozen_factor_at(dataclasses.replace(atm1, mie_g=atm1.mie_g + h), 0).sum()
+        down = problem.frozen_factor_at(dataclasses.replace(atm1, mie_g=atm1.mie_g - h), 0).sum()
+    assert float(grad) == pytest.approx(float(up - down) / (2 * h), rel=1e-6)
+    assert float(grad) != 0.0
+    freeze_tables(problem, x1, ms, wavelength_nodes_count=None)
+    rebuilt = problem.frozen_factor[0]
+    q = torch.tensor([0.5, 0.9], dtype=frozen.dtype)
+    err_frozen = torch.quantile(((frozen - 1.0) / (rebuilt - 1.0) - 1.0).abs().flatten(), q)
+    err_followed = torch.quantile(((followed - 1.0) / (rebuilt - 1.0) - 1.0).abs().flatten(), q)
+    assert float(err_frozen[1]) > 0.03  # the multiple share does move with g
+    print("g", dg, "held", err_frozen.tolist(), "followed", err_followed.tolist())
+    assert bool((err_followed < 0.3 * err_frozen).all())
 
 
 def test_trust_region_penalises_only_outside(sky):

@@ -762,7 +762,7 @@ def numerical_term(problem: FitProblem, x: Tensor, lap: dict, *, reference: SkyM
             budget["numerical_tail"] = {n: float(t) for n, t in zip(names, transform_jacobian(problem, x.to(torch.float64)) * tail)}
             lagged = copy.copy(problem)
             lagged.frozen_factor = rs["factor"]
-            lagged.frozen_slope = None
+            lagged.frozen_slope = lagged.frozen_slope_g = None
             pol = reference_polish(problem, ref, rs["x"], polish) if polish > 0 else None
             if pol is not None:
                 budget["polish"] = {k: pol[k] for k in ("loss", "loss_start", "steps", "converged")}
@@ -830,7 +830,7 @@ def phase_expansion(problem: FitProblem, x: Tensor, term: NumericalTerm, *, refe
     ep = copy.copy(problem)
     ep.param = wide
     ep.frozen_tables = None
-    ep.frozen_slope = None
+    ep.frozen_slope = ep.frozen_slope_g = None
     x0 = wide.initial_vector(x.dtype, x.device)
     ep.frozen_factor = reference_factor(ep, reference_problem(ep, reference), x0)
     opt = options or FitOptions(starts=1, adam_steps=0, max_iter=100)

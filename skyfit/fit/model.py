@@ -267,6 +267,9 @@ class FitProblem:
         self.frozen_slope: tuple[list[Tensor], Tensor] | None = None
         """(D per observation (N_i, W), ln tau_0 (W,)): the frozen factor's first-order dependence on the aerosol
         optical depth (:meth:`frozen_factor_at`), or None (held fixed)."""
+        self.frozen_slope_g: tuple[list[Tensor], float] | None = None
+        """(D_g per observation (N_i, W), g_0): the frozen factor's first-order dependence on the aerosol asymmetry g
+        (:meth:`frozen_factor_at`), or None (held fixed in g)."""
         self.frozen_follow: tuple[list[Tensor], object] | None = None
         """(the frozen factor it belongs to, f(phys, i) -> (N_i, W)): the factor re-evaluated at the current view
         and sun geometry (:func:`skyfit.fit.photo.multiple_from_tables`), used while :attr:`frozen_factor` is that
@@ -307,7 +310,11 @@ class FitProblem:
         (:func:`skyfit.fit.photo.aod_slope`) and tau(lambda) the aerosol's optical depth at each wavelength
         (extinction x column height). Radiative transfer is monochromatic, so F at a wavelength follows that
         wavelength's optical depth: one slope covers the AOD and the Angstrom exponent alike. The fit then sees how
-        the multiple scattering's share grows with the aerosol, which a factor held fixed hides.
+        the multiple scattering's share grows with the aerosol, which a factor held fixed hides. With
+        :attr:`frozen_slope_g` = (D_g, g_0) the exponent also has D_g (g - g_0), g the aerosol's asymmetry
+        (:func:`skyfit.fit.photo.g_slope`): the share of multiple scattering in a sample's radiance moves with g as
+        the single scattering's phase does, and a factor held in g let a low-sun photo's g creep 0.78 -> 0.87 with
+        its AOD 38 % high (docs/photos.md).
 
         With ``phys`` and :attr:`frozen_follow` set for this factor, F_0 is that of the current view and sun geometry
         rather than of each sample's geometry when it was frozen: a factor held per sample while the fit turns the
@@ -319,10 +326,15 @@ class FitProblem:
             f = follow[1](phys, i)
         else:
             f = self.frozen_factor[i]
-        if self.frozen_slope is None:
-            return f
-        slope, log_tau0 = self.frozen_slope
-        return 1.0 + (f - 1.0) * torch.exp(slope[i] * (aerosol_log_depth(atm) - log_tau0))
+        exponent = None
+        if self.frozen_slope is not None:
+            slope, log_tau0 = self.frozen_slope
+            exponent = slope[i] * (aerosol_log_depth(atm) - log_tau0)
+        if self.frozen_slope_g is not None:
+            slope_g, g0 = self.frozen_slope_g
+            term = slope_g[i] * (atm.mie_g - g0)
+            exponent = term if exponent is None else exponent + term
+        return f if exponent is None else 1.0 + (f - 1.0) * torch.exp(exponent)
 
     def spectra(self, phys: dict, atm: Atmosphere | None = None) -> list[Tensor]:
         """Model spectral radiance for every used sample of each observation (N_i, W), no exposure."""
