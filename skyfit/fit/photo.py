@@ -784,6 +784,12 @@ goes on to :data:`MS_REFRESHES` in all. On the synthetic suite a losing probe (c
 ran all six refreshes without settling, 70 s of a 185 s fit. [1]"""
 PROBE_AOD = (0.05, 0.4)
 """Starting AODs of that second fit: the hazy one when the first ended below their geometric mean, else the clear one."""
+RUNNER_UP_RATIO = 1.5
+"""The runner-up projection of the short fits is fitted in full, from the same start as the first (:func:`fit_scene`),
+only where its short fit's loss is below this many times the best's. On both synthetic suites (13 photos whose
+projection the sun could not decide) the runner-up won twice, at short-fit ratios 1.09 and 1.00, and lost all 11
+others, at 1.01-24.7; the 9 with ratios of 1.5 or more paid 12-25 s each for a fit that lost (docs/photos.md,
+"The factor follows g"). [1]"""
 
 
 def camera_priors(free: Sequence[str]) -> dict:
@@ -991,6 +997,13 @@ def _fixed_camera_values(meta: dict | None) -> dict:
     return out
 
 
+def ranked_projections(close: Sequence, scores: Sequence[float]):
+    """The candidate with the lowest short-fit loss, and the runner-up to fit in full as well: the second lowest where
+    its loss is below :data:`RUNNER_UP_RATIO` times the best's, else None (the short fits told them apart)."""
+    k, k2 = (int(v) for v in np.argsort(scores)[:2])
+    return close[k], (close[k2] if scores[k2] < RUNNER_UP_RATIO * scores[k] else None)
+
+
 def projection_decision(candidates: Sequence, detected) -> list:
     """The candidate cameras the sun alone cannot tell apart, best first; one (the sun decides) or several.
 
@@ -1085,10 +1098,9 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
             scores = []
             for c in close:
                 scores.append(quick_run(with_camera(scene, c.camera)).loss)
-            k, k2 = (int(v) for v in np.argsort(scores)[:2])
             scene.notes.append("projection chosen by the fit's loss among " + ", ".join(
                 f"{c.projection} {v:.4g}" for c, v in zip(close, scores)))
-            chosen, runner_up = close[k], close[k2]
+            chosen, runner_up = ranked_projections(close, scores)
             if chosen is not best:
                 scene = with_camera(scene, chosen.camera)
             scene.candidates = [chosen] + [c for c in scene.candidates if c is not chosen]
