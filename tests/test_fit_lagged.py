@@ -162,6 +162,30 @@ def test_factor_followed_in_g_tracks_the_rebuilt_one(sky, dg):
     assert bool((err_followed < 0.3 * err_frozen).all())
 
 
+def test_another_set_of_samples_gets_the_factor_the_fit_used(sky):
+    """transfer_factor (the report's model image and the second pass's outlier map): a problem on other samples
+    (here the same ones) predicts what the fitted problem predicts at x away from where its tables were built, the
+    factor followed in the optical depth and g from the build; the factor looked up at x alone does not."""
+    from skyfit.fit.model import FitProblem
+    from skyfit.fit.photo import PhotoProblem, multiple_from_tables, transfer_factor
+
+    problem = PhotoProblem.of(_problem(sky, ["mie_aod_550", "mie_g", "exposure"]), {})
+    x0 = problem.param.initial_vector()
+    freeze_tables(problem, x0, problem.model.factor_model(), wavelength_nodes_count=None)
+    vals = problem.param.free_dict(x0)
+    vals.update(mie_aod_550=vals["mie_aod_550"] * 1.4, mie_g=vals["mie_g"] + 0.04)
+    x1 = problem.param.to_unconstrained(vals)
+    other = FitProblem(problem.param, problem.model, problem.observations, problem.loss)
+    transfer_factor(problem, other, x1)
+    with torch.no_grad():
+        fitted, moved = problem.predict(x1)[0], other.predict(x1)[0]
+        torch.testing.assert_close(moved, fitted, rtol=1e-9, atol=0.0)
+        other.frozen_slope = other.frozen_slope_g = None
+        other.frozen_factor = multiple_from_tables(other, x1, problem.bruneton[1], problem.bruneton[2])
+        stale = other.predict(x1)[0]
+    assert float((stale / fitted - 1.0).abs().max()) > 0.01
+
+
 def test_trust_region_penalises_only_outside(sky):
     """The photo fit's trust region in the AOD adds TRUST_WEIGHT (|ln tau - ln tau_0| - T)^2 outside |.| <= T and
     nothing inside, so it cannot bias a fit that converges within it."""

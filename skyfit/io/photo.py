@@ -938,6 +938,40 @@ def _log_ratio_samples(a: _Frame, b: _Frame, ra: _Response, rb: _Response, step:
     return np.log(np.maximum(rb.decode(cb, ch), 1e-300)) - np.log(np.maximum(ra.decode(ca, ch), 1e-300))
 
 
+RATIO_ITERATIONS: int = 3
+"""Passes of :func:`_exposure_log_ratio`'s selection by the pair's mean log value."""
+
+
+def _exposure_log_ratio(a: _Frame, b: _Frame, ra: _Response, rb: _Response, step: int, first: float) -> float:
+    """ln of frame b's exposure over frame a's, from ``first`` (the median log ratio over values well exposed in both).
+
+    Selecting the values well exposed in *each* frame biases the ratio: in the darker frame the values just above the
+    floor are there because their noise lifted them, so b / a comes out low. In a realistic camera's dark frames
+    (15-50 % noise per value) the synthetic suites' pairs of the two darkest frames came out 10-45 % low (held-out case
+    5: 2.57 for a true 4.08, 3.23 for 3.77), and the aureole they measure was read too faint. Here the values are
+    selected by their pair's mean log value on a's scale, (ln a + ln b - ln k) / 2, within the well-exposed range
+    (k the ratio so far; a few passes, :data:`RATIO_ITERATIONS`): for equal noise in ln a and ln b that mean is
+    uncorrelated with ln b - ln a, the same argument as the response's binning (module docstring). On the six
+    brackets of the suites without exposure times the pairs' median |error| went 0.87 -> 0.52 % and the worst 58 -> 24 %
+    (docs/photos.md, "The factor follows g"). Written here: no library estimates exposure ratios from two frames."""
+    lo, hi = (math.log(max(float(r.decode(np.array(c))), 1e-300)) for r, c in ((ra, WELL_EXPOSED[0]), (rb, WELL_EXPOSED[1])))
+    ca = a.codes[::step, ::step].astype(np.float64) / a.max_code
+    cb = b.codes[::step, ::step].astype(np.float64) / b.max_code
+    ch = np.broadcast_to(_RGB, ca.shape)
+    la = np.log(np.maximum(ra.decode(ca, ch), 1e-300))
+    lb = np.log(np.maximum(rb.decode(cb, ch), 1e-300))
+    base = (~a.high[::step, ::step] & ~b.high[::step, ::step] & ~a.low[::step, ::step] & ~b.low[::step, ::step]
+            & (a.valid & b.valid)[::step, ::step, None])
+    k = first
+    for _ in range(RATIO_ITERATIONS):
+        m = 0.5 * (la + lb - k)
+        ok = base & (m >= lo) & (m + k <= hi)
+        if int(ok.sum()) < MIN_OVERLAP:
+            return k
+        k = float(np.median((lb - la)[ok]))
+    return k
+
+
 SCENE_BLOCK: int = 8
 """Side of the blocks whose median log ratio the scene check compares [px]: a different scene differs over
 large areas, noise (shot, JPEG, demosaicing, a colour matrix: 15-25 % per pixel in dark frames of a realistic
@@ -1352,7 +1386,8 @@ def _read_bracket(folder: str, linear: bool, exposures, response) -> LinearPhoto
                 raise PhotoError(f"photo {folder}: frames {name[i]} and {name[j]} share no well-exposed pixels "
                                  f"({d.size} channel values) so their exposure ratio cannot be estimated; "
                                  "give the exposures")
-            rel[j] = rel[i] * float(np.exp(np.median(d)))
+            rel[j] = rel[i] * math.exp(_exposure_log_ratio(frames[i], frames[j], responses[i], responses[j], step,
+                                                           float(np.median(d))))
         rel_exp = [rel[i] for i in range(n)]
         notes.append("exposures were estimated from the frames' overlap (no EXIF exposure times, none given): "
                      "the relative exposures are ratios to the darkest frame")
