@@ -1660,7 +1660,7 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
         if best is None or res.loss < best[0]:
             best = (res.loss, res, {a: getattr(problem, a, None) for a in _FROZEN_STATE})
         elif res.loss > MS_RUNAWAY * best[0]:
-            # the refreshes run away from the best fit (its factor's dependence on g is not followed): that fit stands,
+            # the refreshes run away from the best fit (a first-order factor far from its tables): that fit stands,
             # with the factor it was fitted against
             for a, v in best[2].items():
                 setattr(problem, a, v)
@@ -1707,9 +1707,11 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
 
 MS_RUNAWAY = 1.5
 """A lagged refresh whose fit ends above this many times the lowest loss of the earlier refreshes stops the refreshes,
-and the fit with that lowest loss stands with the factor it used. The factor follows the optical depth and the
-geometry, not the asymmetry g: on a hazy photo (held-out synthetic case 14, AOD 0.5) g crept 0.73 -> 0.94 over the
-refreshes while the loss rose 0.44 -> 1.54 (docs/photos.md, "The factor turns with the camera"). [1]"""
+and the fit with that lowest loss stands with the factor it used. Set when the factor followed the optical depth and
+the geometry but not yet g: on a hazy photo (held-out synthetic case 14, AOD 0.5) g crept 0.73 -> 0.94 over the
+refreshes while the loss rose 0.44 -> 1.54 (docs/photos.md, "The factor turns with the camera"). With g followed
+(:func:`g_slope`) it still stops a bracket whose refreshes leave the trust region (held-out case 5: losses 0.12 ->
+0.17 -> 0.19 -> 0.49, AOD 0.34 -> 0.29 -> 0.29 -> 0.58). [1]"""
 _FROZEN_STATE = ("frozen_factor", "frozen_slope", "frozen_slope_g", "frozen_follow", "bruneton", "trust", "trust_g",
                  "frozen_tables", "frozen_at")
 """What a lagged fit's refresh replaces on the problem (the state a fit was fitted against)."""
