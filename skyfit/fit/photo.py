@@ -793,8 +793,8 @@ RUNNER_UP_RATIO = 1.5
 """The runner-up projection of the short fits is fitted in full, from the same start as the first (:func:`fit_scene`),
 only where its short fit's loss is below this many times the best's. On both synthetic suites (13 photos whose
 projection the sun could not decide) the runner-up won twice, at short-fit ratios 1.09 and 1.00, and lost all 11
-others, at 1.01-24.7; the 9 with ratios of 1.5 or more paid 12-25 s each for a fit that lost (docs/photos.md,
-"The factor follows g"). [1]"""
+others, at 1.01-24.7; the 8 with ratios of 1.5 or more each paid a second full fit that lost (seed-0 case 8: 25 s
+of 88 s; docs/photos.md, "The factor follows g"). [1]"""
 
 
 def camera_priors(free: Sequence[str]) -> dict:
