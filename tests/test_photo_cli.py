@@ -779,3 +779,17 @@ def test_curves_of_the_wrong_kind_for_the_photo_are_refused(photos, tmp_path, ca
              capsys, out, "grey.jpg", "a grey image", "rgb.csv", "give one")
     _refused(_fit_argv(photos / "sky.jpg", out / "r.json", photos / "cheap.yaml", T1, "--camera", tmp_path / "one.yaml"),
              capsys, out, "sky.jpg", "a colour image", "one.csv", "give R, G and B")
+
+
+def test_a_scene_under_another_camera_keeps_the_sun_mask_radius_it_was_given(photos):
+    """with_camera (the short fits and the runner-up projection) makes the masks again for the other camera with the
+    sun-mask radius prepare_scene was given, not the default: the same camera gives the same sun mask."""
+    from skyfit.fit.photo import with_camera
+
+    for radius in (3.0, None):
+        scene = fit_photo_module.prepare_scene(photos / "sky.jpg", time=T1, location=LOC, sun_mask_max_deg=radius)
+        again = with_camera(scene, scene.camera)
+        np.testing.assert_array_equal(again.masks["sun"], scene.masks["sun"])
+    small = fit_photo_module.prepare_scene(photos / "sky.jpg", time=T1, location=LOC, sun_mask_max_deg=3.0)
+    default = fit_photo_module.prepare_scene(photos / "sky.jpg", time=T1, location=LOC)
+    assert small.masks["sun"].sum() < default.masks["sun"].sum()  # the radius matters on this photo

@@ -176,6 +176,8 @@ class PhotoScene:
     """Pixels of the photo as read per pixel of ``photo`` (:data:`PHOTO_MAX_SIDE`; 1: fitted at full size)."""
     mirror: bool = False
     """The photo was flipped left-right before anything else (a camera file's ``mirror: true``)."""
+    sun_mask_max_deg: float | None = SUN_MASK_MAX_DEG
+    """Largest radius of the sun's mask, as :func:`prepare_scene` was given it (kept for :func:`with_camera`). [deg]"""
 
     @property
     def excluded(self) -> np.ndarray:
@@ -444,7 +446,7 @@ def prepare_scene(photo: str | Path | LinearPhoto, *, time: str | None = None, l
         raise PhotoFitError(f"photo {src}: no sky pixel left (the lens circle, horizon, sun and masks cover everything)")
     return PhotoScene(photo, sz, sa, float(sp.distance_au), when.isoformat(),
                       {"latitude_deg": float(lat), "longitude_deg": float(lon), "elevation_m": float(elev)},
-                      cam, candidates, detected, circle, masks, notes, seconds, scale, mirror)
+                      cam, candidates, detected, circle, masks, notes, seconds, scale, mirror, sun_mask_max_deg)
 
 
 PHOTO_MAX_SIDE = 1200
@@ -542,7 +544,8 @@ def with_camera(scene: PhotoScene, cam: FisheyeCamera) -> PhotoScene:
     """The scene under another candidate camera, its masks made again for that camera (the user's kept); notes and
     candidates are the same lists."""
     return dataclasses.replace(scene, camera=cam, masks=scene_masks(scene.photo, cam, scene.detected_sun, scene.sun_zenith_deg,
-                                                                    scene.sun_azimuth_deg, scene.masks.get("user")))
+                                                                    scene.sun_azimuth_deg, scene.masks.get("user"),
+                                                                    scene.sun_mask_max_deg))
 
 
 # -- blocks ---------------------------------------------------------------------------------------
