@@ -674,3 +674,17 @@ def test_exposure_ratios_of_noisy_frames_are_not_biased_low(tmp_path):
     ph = read_photo(tmp_path / "s")
     rel = np.array([f["relative_exposure"] for f in ph.meta["frames"]])
     np.testing.assert_allclose(rel[1:] / rel[:-1], 4.0, rtol=0.015)
+
+
+def test_exposure_ratios_through_a_three_curve_table_without_exposures(tmp_path):
+    """A calibrated response with one curve per channel (``file:TABLE.csv`` with R, G, B) and no exposure times: the
+    ratios are estimated through each channel's curve (the well-exposed range decoded per channel; it once raised a
+    TypeError there)."""
+    write_bracket(tmp_path / "s", scene(96, 128), [1 / 256, 1 / 64, 1 / 16], fmt="png", encode="srgb", noise=0.01)
+    c = np.linspace(0.0, 1.0, 256)
+    table = tmp_path / "response.csv"
+    np.savetxt(table, np.column_stack([c, srgb_dec(c), 0.9 * srgb_dec(c), srgb_dec(c)]), delimiter=",",
+               header="code,R,G,B", comments="")
+    ph = read_photo(tmp_path / "s", response=f"file:{table}")
+    rel = np.array([f["relative_exposure"] for f in ph.meta["frames"]])
+    np.testing.assert_allclose(rel[1:] / rel[:-1], 4.0, rtol=0.01)

@@ -839,13 +839,20 @@ def _subsample_step(shape: tuple[int, int]) -> int:
 # Bracket statistics: response, exposure ratios, scene check
 # --------------------------------------------------------------------------
 
-def _pair_samples(a: _Frame, b: _Frame, step: int, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Encoded values (n,) of channels well exposed in both frames (subsampled grid), and their channel (n,)."""
+def _pair_grid(a: _Frame, b: _Frame, step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Encoded values of both frames on the subsampled grid, (h, w, 3) each, and where neither is clipped, black or
+    invalid (h, w, 3)."""
     ca = a.codes[::step, ::step].astype(np.float64) / a.max_code
     cb = b.codes[::step, ::step].astype(np.float64) / b.max_code
-    ok = ((ca >= lo) & (ca <= hi) & (cb >= lo) & (cb <= hi)
-          & ~a.high[::step, ::step] & ~b.high[::step, ::step] & ~a.low[::step, ::step] & ~b.low[::step, ::step]
+    ok = (~a.high[::step, ::step] & ~b.high[::step, ::step] & ~a.low[::step, ::step] & ~b.low[::step, ::step]
           & (a.valid & b.valid)[::step, ::step, None])
+    return ca, cb, ok
+
+
+def _pair_samples(a: _Frame, b: _Frame, step: int, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Encoded values (n,) of channels well exposed in both frames (subsampled grid), and their channel (n,)."""
+    ca, cb, ok = _pair_grid(a, b, step)
+    ok &= (ca >= lo) & (ca <= hi) & (cb >= lo) & (cb <= hi)
     return ca[ok], cb[ok], np.broadcast_to(_RGB, ok.shape)[ok]
 
 
@@ -942,8 +949,9 @@ RATIO_ITERATIONS: int = 3
 """Passes of :func:`_exposure_log_ratio`'s selection by the pair's mean log value."""
 
 
-def _exposure_log_ratio(a: _Frame, b: _Frame, ra: _Response, rb: _Response, step: int, first: float) -> float:
-    """ln of frame b's exposure over frame a's, from ``first`` (the median log ratio over values well exposed in both).
+def _exposure_log_ratio(a: _Frame, b: _Frame, ra: _Response, rb: _Response, step: int) -> tuple[float, int]:
+    """(ln of frame b's exposure over frame a's, the number of values well exposed in both frames), starting from the
+    median log ratio over those values.
 
     Selecting the values well exposed in *each* frame biases the ratio: in the darker frame the values just above the
     floor are there because their noise lifted them, so b / a comes out low. In a realistic camera's dark frames
@@ -954,22 +962,28 @@ def _exposure_log_ratio(a: _Frame, b: _Frame, ra: _Response, rb: _Response, step
     uncorrelated with ln b - ln a, the same argument as the response's binning (module docstring). On the six
     brackets of the suites without exposure times the pairs' median |error| went 0.87 -> 0.52 % and the worst 58 -> 24 %
     (docs/photos.md, "The factor follows g"). Written here: no library estimates exposure ratios from two frames."""
-    lo, hi = (math.log(max(float(r.decode(np.array(c))), 1e-300)) for r, c in ((ra, WELL_EXPOSED[0]), (rb, WELL_EXPOSED[1])))
-    ca = a.codes[::step, ::step].astype(np.float64) / a.max_code
-    cb = b.codes[::step, ::step].astype(np.float64) / b.max_code
+    ca, cb, base = _pair_grid(a, b, step)
     ch = np.broadcast_to(_RGB, ca.shape)
-    la = np.log(np.maximum(ra.decode(ca, ch), 1e-300))
-    lb = np.log(np.maximum(rb.decode(cb, ch), 1e-300))
-    base = (~a.high[::step, ::step] & ~b.high[::step, ::step] & ~a.low[::step, ::step] & ~b.low[::step, ::step]
-            & (a.valid & b.valid)[::step, ::step, None])
-    k = first
+
+    def log_decoded(r: _Response, c: np.ndarray, channel: np.ndarray) -> np.ndarray:
+        return np.log(np.maximum(r.decode(c, channel), 1e-300))
+
+    la, lb = log_decoded(ra, ca, ch), log_decoded(rb, cb, ch)
+    lo_c, hi_c = WELL_EXPOSED
+    # the well-exposed range in linear values, per channel (a three-curve table decodes each with its own), (3,)
+    lo, hi = log_decoded(ra, np.full(3, lo_c), _RGB), log_decoded(rb, np.full(3, hi_c), _RGB)
+    both = base & (ca >= lo_c) & (ca <= hi_c) & (cb >= lo_c) & (cb <= hi_c)
+    n = int(both.sum())
+    if n == 0:
+        return math.nan, 0
+    k = float(np.median((lb - la)[both]))
     for _ in range(RATIO_ITERATIONS):
         m = 0.5 * (la + lb - k)
         ok = base & (m >= lo) & (m + k <= hi)
         if int(ok.sum()) < MIN_OVERLAP:
-            return k
+            break
         k = float(np.median((lb - la)[ok]))
-    return k
+    return k, n
 
 
 SCENE_BLOCK: int = 8
@@ -1381,13 +1395,12 @@ def _read_bracket(folder: str, linear: bool, exposures, response) -> LinearPhoto
     if rel_exp is None:
         rel = {order[0]: 1.0}
         for i, j in zip(order[:-1], order[1:]):
-            d = _log_ratio_samples(frames[i], frames[j], responses[i], responses[j], step, *WELL_EXPOSED)
-            if d.size < MIN_OVERLAP:
+            k, shared = _exposure_log_ratio(frames[i], frames[j], responses[i], responses[j], step)
+            if shared < MIN_OVERLAP:
                 raise PhotoError(f"photo {folder}: frames {name[i]} and {name[j]} share no well-exposed pixels "
-                                 f"({d.size} channel values) so their exposure ratio cannot be estimated; "
+                                 f"({shared} channel values) so their exposure ratio cannot be estimated; "
                                  "give the exposures")
-            rel[j] = rel[i] * math.exp(_exposure_log_ratio(frames[i], frames[j], responses[i], responses[j], step,
-                                                           float(np.median(d))))
+            rel[j] = rel[i] * math.exp(k)
         rel_exp = [rel[i] for i in range(n)]
         notes.append("exposures were estimated from the frames' overlap (no EXIF exposure times, none given): "
                      "the relative exposures are ratios to the darkest frame")
