@@ -1487,14 +1487,9 @@ def g_slope(problem: FitProblem, x: torch.Tensor, factor: list[torch.Tensor], st
     x1 = g_stepped(problem, x)
     factor1 = multiple_from_tables(problem, x1, *stepped, follow_geometry=False)
     step = _g_at(problem, x1) - _g_at(problem, x)
-    slope = []
-    for f0, f1 in zip(factor, factor1):
-        a, b = f0 - 1.0, f1 - 1.0
-        ok = (a > 1e-9) & (b > 1e-9)
-        ratio = torch.where(ok, torch.log(torch.where(ok, b, torch.ones_like(b)) / torch.where(ok, a, torch.ones_like(a))),
-                            torch.zeros_like(a))
-        slope.append(ratio.clamp(-math.log(3.0), math.log(3.0)) / step)  # at most x3 per step (tables' noise aside)
-    return slope, _g_at(problem, x)
+    # at most x3 per step (tables' noise aside)
+    return ([d.clamp(-math.log(3.0), math.log(3.0)) / step for d in share_log_ratios(factor, factor1)],
+            _g_at(problem, x))
 
 
 def aod_slope(problem: FitProblem, x: torch.Tensor, factor: list[torch.Tensor], stepped,
@@ -1511,14 +1506,21 @@ def aod_slope(problem: FitProblem, x: torch.Tensor, factor: list[torch.Tensor], 
     (docs/photos.md, "The lagged factor"). :meth:`FitProblem.frozen_factor_at` applies it."""
     factor1 = multiple_from_tables(problem, aod_stepped(problem, x), *stepped, follow_geometry=False)  # its live anchor ignores any frozen factor
     step = math.log1p(MS_AOD_STEP)
-    slope = []
+    # a power law in tau within physical bounds (noise of the tables aside)
+    return [(d / step).clamp(-3.0, 3.0) for d in share_log_ratios(factor, factor1)], log_depth
+
+
+def share_log_ratios(factor: list[torch.Tensor], factor1: list[torch.Tensor]) -> list[torch.Tensor]:
+    """ln((F_1 - 1) / (F - 1)) per observation, sample and wavelength, between two multiple-scattering factors (the
+    change of the multiple share over a stepped build: :func:`aod_slope`, :func:`g_slope`); 0 where either share is not
+    positive. [1]"""
+    out = []
     for f0, f1 in zip(factor, factor1):
         a, b = f0 - 1.0, f1 - 1.0
         ok = (a > 1e-9) & (b > 1e-9)
-        d = torch.where(ok, torch.log(torch.where(ok, b, torch.ones_like(b)) / torch.where(ok, a, torch.ones_like(a))),
-                        torch.zeros_like(a)) / step
-        slope.append(d.clamp(-3.0, 3.0))  # a power law in tau within physical bounds (noise of the tables aside)
-    return slope, log_depth
+        out.append(torch.where(ok, torch.log(torch.where(ok, b, torch.ones_like(b)) / torch.where(ok, a, torch.ones_like(a))),
+                               torch.zeros_like(a)))
+    return out
 
 
 def multiple_from_tables(problem: FitProblem, x: torch.Tensor, tables, nodes: np.ndarray | None = None,
