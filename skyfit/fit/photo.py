@@ -1335,10 +1335,7 @@ def freeze_tables(problem: FitProblem, x: torch.Tensor, bruneton: "SkyModel | No
         tables, nodes = build(x)
         previous, old = problem.frozen_slope, getattr(problem, "bruneton", None)
         previous_g = problem.frozen_slope_g
-        problem.frozen_slope, problem.trust = None, None
-        problem.frozen_slope_g, problem.trust_g = None, None
-        problem.frozen_factor = multiple_from_tables(problem, x, tables, nodes)
-        problem.frozen_at = x.detach().clone()
+        _freeze_factor(problem, x, tables, nodes)
         stepped = None
         if follows_aod(problem):
             log_depth = _log_depth(problem, x)
@@ -1367,6 +1364,14 @@ def freeze_tables(problem: FitProblem, x: torch.Tensor, bruneton: "SkyModel | No
     if problem.model.orders > 1:
         with torch.no_grad():
             problem.frozen_tables = problem.model.tables(problem.param.atmosphere(problem.param.to_physical(x)))
+
+
+def _freeze_factor(problem: FitProblem, x: torch.Tensor, tables, nodes) -> None:
+    """Freeze the factor of ``tables`` (on wavelength ``nodes``) at x, where they were built (:attr:`frozen_at`), its
+    slopes and trust regions cleared (:func:`follow_aod`, :func:`follow_g` set them)."""
+    problem.frozen_slope = problem.trust = problem.frozen_slope_g = problem.trust_g = None
+    problem.frozen_factor = multiple_from_tables(problem, x, tables, nodes)
+    problem.frozen_at = x.detach().clone()
 
 
 MS_AOD_SLOPE = True
@@ -1648,10 +1653,7 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
         stepped = tables[2] if len(tables) > 2 else None
         stepped_g = tables[3] if len(tables) > 3 else None
         problem.bruneton = (bruneton, tables[0], tables[1], stepped, stepped_g)
-        problem.frozen_slope, problem.trust = None, None
-        problem.frozen_slope_g, problem.trust_g = None, None
-        problem.frozen_factor = multiple_from_tables(problem, x, tables[0], tables[1])
-        problem.frozen_at = x.detach().clone()
+        _freeze_factor(problem, x, tables[0], tables[1])
         if stepped is not None and follows_aod(problem):
             follow_aod(problem, x, stepped, _log_depth(problem, x))
         if stepped_g is not None and follows_g(problem):
