@@ -1121,64 +1121,79 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         for deg in (0.0, 90.0, 180.0, 270.0):
             tries.append((quick_run(scene, start={"sun_azimuth_offset": math.radians(deg)}).loss, deg))
         start = {"sun_azimuth_offset": math.radians(min(tries)[1])}
-    t1 = _now()
-    # the short fits' tables were built at the same starting atmosphere (the start moves only the heading)
-    blocks, prep, problem, res = run(scene, start=start, tables=shared.get("tables"), settle_first=False)
-    if not calibrated and problem.priors and "mie_aod_550" in s.free:
+    def probed(sc: PhotoScene, fit):
+        """``fit`` or, where its camera nuisances strained their priors (:data:`PRIOR_STRAIN_LEVEL`), the refit from
+        the other side of the aerosol's range when that fits better."""
+        blocks, prep, problem, res = fit
+        if calibrated or not problem.priors or "mie_aod_550" not in s.free:
+            return fit
         with torch.no_grad():
             strain = 2.0 * float(problem.prior_penalty(problem.param.to_physical(res.x)))
         limit = float(scipy.stats.chi2.ppf(PRIOR_STRAIN_LEVEL, len(problem.priors)))
-        if strain > limit:  # the camera took up what the aerosol should: a second basin, from the other side
-            aod1 = float(problem.param.physical_dict(res.x)["mie_aod_550"])
-            probe = PROBE_AOD[1] if aod1 < math.sqrt(PROBE_AOD[0] * PROBE_AOD[1]) else PROBE_AOD[0]
-            fit_p = run(scene, start={**(start or {}), "mie_aod_550": probe}, refreshes=PROBE_REFRESHES)
-            if fit_p[3].loss < res.loss and fit_p[3].convergence.get("ms_refreshes", 0) >= PROBE_REFRESHES:
-                # a probe that wins but has not settled goes on, from where it stands, with the tables it ended on
-                start_p, last = _continuation(fit_p[2], fit_p[3].x, s.free)
-                fit_p = run(scene, start=start_p, refreshes=MS_REFRESHES - PROBE_REFRESHES, tables=last,
-                            settings=dataclasses.replace(s, adam_steps=0, starts=1))
-            better = fit_p[3].loss < res.loss
-            scene.notes.append(f"the camera's nuisances (gains, saturations, vignetting) strained their priors (sum z^2 {strain:.1f} > "
-                               f"{limit:.4g}): refitted from AOD {probe:g}, loss {fit_p[3].loss:.5g} against "
-                               f"{res.loss:.5g} from the first start ({'kept' if better else 'not kept'})")
-            if better:
-                blocks, prep, problem, res = fit_p
+        if strain <= limit:
+            return fit
+        # the camera took up what the aerosol should: a second basin, from the other side
+        aod1 = float(problem.param.physical_dict(res.x)["mie_aod_550"])
+        probe = PROBE_AOD[1] if aod1 < math.sqrt(PROBE_AOD[0] * PROBE_AOD[1]) else PROBE_AOD[0]
+        fit_p = run(sc, start={**(start or {}), "mie_aod_550": probe}, refreshes=PROBE_REFRESHES)
+        if fit_p[3].loss < res.loss and fit_p[3].convergence.get("ms_refreshes", 0) >= PROBE_REFRESHES:
+            # a probe that wins but has not settled goes on, from where it stands, with the tables it ended on
+            start_p, last = _continuation(fit_p[2], fit_p[3].x, s.free)
+            fit_p = run(sc, start=start_p, refreshes=MS_REFRESHES - PROBE_REFRESHES, tables=last,
+                        settings=dataclasses.replace(s, adam_steps=0, starts=1))
+        better = fit_p[3].loss < res.loss
+        sc.notes.append(f"the camera's nuisances (gains, saturations, vignetting) of the {sc.camera.projection} fit strained "
+                        f"their priors (sum z^2 {strain:.1f} > {limit:.4g}): refitted from AOD {probe:g}, loss "
+                        f"{fit_p[3].loss:.5g} against {res.loss:.5g} from the first start ({'kept' if better else 'not kept'})")
+        return fit_p if better else fit
+
+    def with_lens(sc: PhotoScene, fit):
+        """``fit`` and its lens departure: refitted with the lens the sun measures (:func:`lens_from_sun`) where the
+        same data then fit better and the sun comes nearer its detection (:data:`LENS_MISS_SHARE`), else as it was
+        with None."""
+        blocks, prep, problem, res = fit
+        if calibrated or "lens_radial" in s.free:
+            return fit, None
+        lens, why = lens_from_sun(problem, res.x, sc.camera.projection)
+        if lens is None:
+            return fit, None
+        start_l, last = _continuation(problem, res.x, s.free)
+        start_l["lens_radial"] = lens
+        fit_l = run(sc, start=start_l, settings=dataclasses.replace(s, adam_steps=0, starts=1), tables=last)
+        miss, before = sun_separation_deg(fit_l[2], fit_l[3].x), sun_separation_deg(problem, res.x)
+        kept = fit_l[3].loss < res.loss and miss < max(LENS_SUN_MIN_DEG, LENS_MISS_SHARE * before)
+        sc.notes.append(f"lens departure lens_radial {lens:+.4f} measured from {why} (skyfit.fit.photo.lens_from_sun); "
+                        f"{'kept' if kept else 'not kept'}: loss {fit_l[3].loss:.5g} with it, {res.loss:.5g} without, "
+                        f"the sun {miss:.2f} deg from its detection after the refit, {before:.2f} before")
+        # the refit must also bring the sun near its detection: else the sky disagrees with that lens
+        return (fit_l, lens) if kept else (fit, None)
+
+    t1 = _now()
+    # the short fits' tables were built at the same starting atmosphere (the start moves only the heading)
+    fit = probed(scene, run(scene, start=start, tables=shared.get("tables"), settle_first=False))
     timings["fit_pass1"] = _now() - t1
+    t_lens = _now()
+    fit, lens = with_lens(scene, fit)
+    timings["lens"] = _now() - t_lens
     if runner_up is not None:
         # the short fits rank the projections from a far start (unconverged on hazy skies under a high sun: 3.6 against
         # 3.3 where converged fits end at 0.23 for the true lens and 0.85 for the other); the runner-up is fitted as
         # the first was, from the same start (from the first fit's values it stayed in that fit's basin: held-out
-        # case 14, 2.19 against 1.54), and the lower loss keeps its projection
+        # case 14, 2.19 against 1.54), with its own probe and lens (held-out case 4, a Kannala-Brandt lens: equidistant
+        # lost to equisolid at 0.295 against 0.278 without its lens and won at 0.169 with it), and the lower loss
+        # keeps its projection
         t_r = _now()
         sc_r = with_camera(scene, runner_up.camera)
-        fit_r = run(sc_r, start=start, tables=shared.get("tables"), settle_first=False)
-        better = fit_r[3].loss < res.loss
+        fit_r, lens_r = with_lens(sc_r, probed(sc_r, run(sc_r, start=start, tables=shared.get("tables"), settle_first=False)))
+        better = fit_r[3].loss < fit[3].loss
         scene.notes.append(f"the runner-up projection {runner_up.projection} fitted from the same start: loss "
-                           f"{fit_r[3].loss:.5g} against {res.loss:.5g} for {scene.camera.projection} "
+                           f"{fit_r[3].loss:.5g} against {fit[3].loss:.5g} for {scene.camera.projection} "
                            f"({runner_up.projection if better else scene.camera.projection} kept)")
         if better:
             sc_r.candidates = [runner_up] + [c for c in scene.candidates if c is not runner_up]
-            scene = sc_r
-            blocks, prep, problem, res = fit_r
+            scene, fit, lens = sc_r, fit_r, lens_r
         timings["projection_runner_up"] = _now() - t_r
-    lens = None
-    if not calibrated and "lens_radial" not in s.free:
-        t_lens = _now()
-        lens, why = lens_from_sun(problem, res.x, scene.camera.projection)
-        if lens is not None:  # refit with the lens; kept only where the same data then fit better (the evidence)
-            start_l, last = _continuation(problem, res.x, s.free)
-            start_l["lens_radial"] = lens
-            fit_l = run(scene, start=start_l, settings=dataclasses.replace(s, adam_steps=0, starts=1), tables=last)
-            miss, before = sun_separation_deg(fit_l[2], fit_l[3].x), sun_separation_deg(problem, res.x)
-            kept = fit_l[3].loss < res.loss and miss < max(LENS_SUN_MIN_DEG, LENS_MISS_SHARE * before)
-            scene.notes.append(f"lens departure lens_radial {lens:+.4f} measured from {why} (skyfit.fit.photo.lens_from_sun); "
-                               f"{'kept' if kept else 'not kept'}: loss {fit_l[3].loss:.5g} with it, {res.loss:.5g} without, "
-                               f"the sun {miss:.2f} deg from its detection after the refit, {before:.2f} before")
-            if kept:  # the refit must also bring the sun near its detection: else the sky disagrees with that lens
-                blocks, prep, problem, res = fit_l
-            else:
-                lens = None
-        timings["lens"] = _now() - t_lens
+    blocks, prep, problem, res = fit
     if second_pass:
         t2 = _now()
         rel = relative_residual_map(problem, res.x, blocks, scene)
