@@ -318,15 +318,18 @@ def test_factor_follows_a_turned_camera(sky):
 
 
 @pytest.mark.parametrize("losses, rebuilt, stands, loss, runaway", [
-    ((1.0, 0.5, 0.9), (0.8, 0.7), 1, 0.7, True),  # the second fit explains the data best with its factor rebuilt
-    ((1.0, 0.5, 0.9), (0.6, 0.7), 0, 0.6, True),  # the first does, though the second's own loss was lower
-    ((1.0, 0.5, 0.7, 0.6), (0.9, 0.6, 0.65, 0.62), 3, 0.6, False)])
+    # a fit starts at the loss rebuilt after the one before and ends at or below it
+    ((1.0, 0.5, 1.3), (0.8, 1.4), 0, 0.8, True),  # 1.3 > 1.5 x 0.8: the first fit stands with its rebuilt factor
+    ((1.0, 0.5, 0.55, 1.0), (0.7, 0.6, 1.1), 1, 0.6, True),  # the second, though the third's own loss was lower
+    # held-out case 5's shape: against the lowest fit loss (0.13) the 0.20 was a runaway, against the rebuilt 0.3 not
+    ((0.45, 0.13, 0.18, 0.20), (0.5, 0.3, 0.36, 0.25), 3, 0.20, False),
+    ((1.0, 0.5, 0.7, 0.6), (0.9, 0.75, 0.65, 0.62), 3, 0.6, False)])
 def test_runaway_refreshes_stop_and_the_consistent_fit_stands(sky, monkeypatch, losses, rebuilt, stands, loss, runaway):
-    """skyfit.fit.photo.lagged_fit: a refresh whose fit ends above MS_RUNAWAY (1.5) times the best loss so far stops
-    the refreshes; the fit stands whose result the model explains best with the factor rebuilt there (the loss at its
-    x after the rebuild, ``rebuilt``), with that rebuilt factor and that loss: a fit's own loss may be low against a
-    factor extrapolated far from its tables (held-out synthetic case 5). Below MS_RUNAWAY the refreshes go on and the
-    last fit stands. The optimiser and the table builds are stubbed: each fit moves x and returns the next loss, each
+    """skyfit.fit.photo.lagged_fit: a refresh whose fit ends above MS_RUNAWAY (1.5) times the lowest rebuilt loss so
+    far (the loss at a fit's x with the factor rebuilt there, ``rebuilt``) stops the refreshes; the fit with that
+    lowest rebuilt loss stands, with its rebuilt factor and that loss: a fit's own loss may be low against a factor
+    extrapolated far from its tables (held-out synthetic case 5). Below MS_RUNAWAY the refreshes go on and the last
+    fit stands. The optimiser and the table builds are stubbed: each fit moves x and returns the next loss, each
     build installs a new factor, so which factor a result carries can be told."""
     import dataclasses
 

@@ -1682,10 +1682,11 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
         res = optimise(problem, options)
         if best is None or res.loss < best[0]:
             best = (res.loss, res, {a: getattr(problem, a, None) for a in _FROZEN_STATE})
-        elif res.loss > MS_RUNAWAY * best[0]:
-            # the refreshes run away from the best fit: the fit whose result the model with its factor rebuilt there
-            # explains best stands, with that factor (MS_RUNAWAY); the first fit, where none was rebuilt, with its own
-            loss, stood, state = rebuilt if rebuilt is not None else best
+        elif res.loss > MS_RUNAWAY * (rebuilt or best)[0]:
+            # the refreshes run away: the model with its factor rebuilt at the last result explains the data this much
+            # worse than it did at an earlier one (a fit ends at or below the loss it starts from, the rebuilt one);
+            # that earlier fit stands, with its rebuilt factor (MS_RUNAWAY). Without a rebuild, the lowest fit loss
+            loss, stood, state = rebuilt or best
             for a, v in state.items():
                 setattr(problem, a, v)
             res = dataclasses.replace(stood, loss=loss, convergence={**stood.convergence, "ms_runaway": True})
@@ -1734,14 +1735,15 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
 
 
 MS_RUNAWAY = 1.5
-"""A lagged refresh whose fit ends above this many times the lowest loss of the earlier refreshes stops the refreshes.
-The fit that stands is the one whose result the model explains best with the factor rebuilt there (each rebuild's
-loss at the fit it follows), with that factor: the lowest fit loss is often one against a factor extrapolated far from
-its tables, which the model at that point does not reach (held-out synthetic case 5, a Foveon bracket at AOD 0.30:
-fits 0.447, 0.134, 0.176, 0.203 at AOD 0.20, 0.34, 0.28, 0.29; the 0.134, kept before, was against tables built at
-0.20; the second pass went on from it with those tables taken for tables built at 0.34, and ended at AOD +11.4 %, its
-report's model 11 % rms from the photo; with the rule: -3.7 %, 2.0 %). Where no fit has been rebuilt yet, the
-lowest loss stands with the factor it used. The rule was set when the factor followed the optical depth and the
+"""A lagged refresh whose fit ends above this many times the lowest rebuilt loss so far stops the refreshes: each
+rebuild's loss at the fit it follows, the model with the factor rebuilt there (a fit starts from the last one and ends
+at or below it). The fit with that lowest rebuilt loss stands, with its rebuilt factor. A fit's own loss is no measure:
+the lowest is often one against a factor extrapolated far from its tables, which the model there does not reach
+(held-out synthetic case 5, a Foveon bracket at AOD 0.30: fits 0.447, 0.134, 0.176, 0.203 at AOD 0.20, 0.34, 0.28,
+0.29, and the 0.134 was against tables built at 0.20. Measured against it the 0.203 stopped the refreshes, the 0.134
+stood, and the second pass went on from it with those tables taken for tables built at 0.34: AOD +11.4 %, the
+report's model 11 % rms from the photo; docs/photos.md, "The runner-up with its lens"). Without a rebuild (the
+first fit) the lowest fit loss is the measure. The rule was set when the factor followed the optical depth and the
 geometry but not yet g: on a hazy photo (held-out synthetic case 14, AOD 0.5) g crept 0.73 -> 0.94 over the
 refreshes while the loss rose 0.44 -> 1.54 (docs/photos.md, "The factor turns with the camera"). [1]"""
 _FROZEN_STATE = ("frozen_factor", "frozen_slope", "frozen_slope_g", "frozen_follow", "bruneton", "trust", "trust_g",
