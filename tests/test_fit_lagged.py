@@ -361,3 +361,54 @@ def test_runaway_refreshes_stop_and_the_consistent_fit_stands(sky, monkeypatch, 
     if runaway:
         assert res.x is xs[stands]
         assert problem.frozen_factor is builds[stands + 1]  # rebuilt at the standing fit's result
+
+
+def test_a_refit_starts_from_the_factor_a_settled_fit_ended_on(sky4, monkeypatch):
+    """skyfit.fit.photo._continuation: a fit that settled without a rebuild (MS_SETTLED_REBUILD off) ends one
+    refresh after its tables were built; the refit from it (lens refit, second pass, a probe's continuation) is
+    handed the tables with the atmosphere they were built at, and its first model at the start is the model the fit
+    ended on. Taken as built at the fit's result (before), the factor was off by the followed slope times the AOD's
+    last move."""
+    from skyfit.fit import photo as fp
+    from skyfit.fit.optimise import OptimiseResult
+
+    free = ["mie_aod_550", "mie_angstrom_alpha", "exposure"]
+    options = fit_settings({"starts": 1, "adam_steps": 0}).options(False)
+    # every refresh builds its own AOD-stepped tables: a refresh that keeps the last slope (MS_SLOPE_REUSE) hands on
+    # stepped tables built about an earlier point, from which the refit's slope differs (1e-3 here; left)
+    monkeypatch.setattr(fp, "MS_SLOPE_REUSE", 0.0)
+    problem = fp.PhotoProblem.of(_problem(sky4, free), {})
+    problem.param.set_value("mie_aod_550", 0.12)
+    res = fp.lagged_fit(problem, options, bruneton=problem.model.factor_model())
+    assert math.isnan(res.convergence["ms_factor_change"])  # settled: no rebuild after the last fit
+    built_aod = problem.param.free_dict(problem.frozen_at)["mie_aod_550"]
+    aod = problem.param.free_dict(res.x)["mie_aod_550"]
+    assert aod != built_aod
+    with torch.no_grad():
+        ended = problem.predict(res.x)[0]
+    start, last = fp._continuation(problem, res.x, free)
+    assert last[4]["mie_aod_550"] == pytest.approx(built_aod, rel=1e-12)
+
+    def first_model(tables):
+        refit = fp.PhotoProblem.of(_problem(sky4, free), {})
+        for n, v in start.items():
+            refit.param.set_value(n, v)
+        seen = []
+
+        def stop(p, opts):  # record the model at the start, end there
+            x0 = p.param.initial_vector()
+            with torch.no_grad():
+                seen.append(p.predict(x0)[0])
+            return OptimiseResult(x0, 0.0, {}, list(p.param.free), {}, [], [])
+
+        with monkeypatch.context() as m:
+            m.setattr(fp, "optimise", stop)
+            fp.lagged_fit(refit, options, refreshes=1, bruneton=refit.model.factor_model(), tables=tables,
+                          refresh_last=False)
+        return seen[0]
+
+    now, before = first_model(last), first_model(last[:4])
+    torch.testing.assert_close(now, ended, rtol=1e-9, atol=0.0)
+    off = float((before / ended - 1.0).abs().max())
+    print(f"AOD {built_aod:.5f} -> {aod:.5f}; taken as built at the result the start's model is off by {off:.2e}")
+    assert off > 1e-6

@@ -56,7 +56,7 @@ from ..io.photo import LinearPhoto, block_view, exif_location, exif_stamps, read
 from .data import Observation
 from .model import FitProblem, aerosol_log_depth, applied_lens, lens_directions, tilt_directions
 from .optimise import fit as optimise
-from .parameters import CAMERA_RESPONSE
+from .parameters import CAMERA_RESPONSE, NUISANCE
 from .problem import fit_settings, make_model, prepare
 
 if TYPE_CHECKING:
@@ -1230,10 +1230,20 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
 
 
 def _continuation(problem: FitProblem, x: torch.Tensor, free) -> tuple[dict, tuple | None]:
-    """A refit's start from a fit at x: the free values there, and the fit's last Bruneton tables (built at x: no
-    build before the refit's first fit), None without them."""
-    start = {n: v for n, v in problem.param.physical_dict(x).items() if n in free}
-    return start, problem.bruneton[1:] if getattr(problem, "bruneton", None) is not None else None
+    """A refit's start from a fit at x: the free values there, and the fit's last Bruneton tables (no build before
+    the refit's first fit) with the atmosphere they were built at (:attr:`frozen_at`'s free values other than the
+    camera's nuisances), None without them. That is x after a rebuild, and one refresh earlier after a fit that
+    settled without one (:data:`MS_SETTLED_REBUILD`): :func:`lagged_fit` starts the refit from the factor the fit
+    ended on, looked up there and followed to x, as :func:`transfer_factor` does (taken as built at x, the factor
+    was off by the followed slope times the AOD's last move)."""
+    vals = problem.param.physical_dict(x)
+    start = {n: v for n, v in vals.items() if n in free}
+    b = getattr(problem, "bruneton", None)
+    if b is None:
+        return start, None
+    at = getattr(problem, "frozen_at", None)
+    built = problem.param.physical_dict(at) if at is not None else vals
+    return start, (*b[1:], {n: built[n] for n in problem.param.free if n not in NUISANCE})
 
 
 def _start_at(problem: FitProblem, x: torch.Tensor) -> None:
@@ -1669,11 +1679,15 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
         stepped = tables[2] if len(tables) > 2 else None
         stepped_g = tables[3] if len(tables) > 3 else None
         problem.bruneton = (bruneton, tables[0], tables[1], stepped, stepped_g)
-        _freeze_factor(problem, x, tables[0], tables[1])
+        # the tables' own atmosphere (_continuation) with the start's camera: the factor is looked up where they
+        # were built and followed from there, as the fit that handed them on followed it
+        built = {n: v for n, v in (tables[4] if len(tables) > 4 else {}).items() if n in problem.param.free}
+        xb = problem.param.to_unconstrained({**problem.param.free_dict(x), **built}, x.dtype, x.device) if built else x
+        _freeze_factor(problem, xb, tables[0], tables[1])
         if stepped is not None and follows_aod(problem):
-            follow_aod(problem, x, stepped, _log_depth(problem, x))
+            follow_aod(problem, xb, stepped, _log_depth(problem, xb))
         if stepped_g is not None and follows_g(problem):
-            follow_g(problem, x, stepped_g)
+            follow_g(problem, xb, stepped_g)
     else:
         freeze_tables(problem, x, bruneton)
     _start_at(problem, problem.profile_exposure(x))
