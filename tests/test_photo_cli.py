@@ -811,9 +811,40 @@ def test_the_runner_up_projection_gets_its_own_lens_before_the_losses_are_compar
     monkeypatch.setattr(fit_photo_module, "lens_from_sun", lens_from_sun)
     monkeypatch.setattr(fit_photo_module, "projection_decision", lambda candidates, detected: list(candidates[:2]))
     monkeypatch.setattr(fit_photo_module, "RUNNER_UP_RATIO", 1e9)
+    monkeypatch.setattr(fit_photo_module, "RACE_RATIO", 1e9)  # neither is dropped after the race's refreshes
     pf = skyfit.fit_photo(photos / "sky.jpg", time=T1, location=LOC, config=photos / "cheap.yaml", laplace=False)
     notes = pf.result["notes"]
     runner = [n for n in notes if n.startswith("the runner-up projection")]
     assert len(runner) == 1, notes
     assert len(asked) == 2 and len(set(asked)) == 2, asked
     assert asked[0] in runner[0] and asked[1] in runner[0]
+
+
+def test_a_projection_far_behind_after_the_race_is_dropped_there(photos, monkeypatch):
+    """Where a runner-up projection is fitted, both fits race for RACE_REFRESHES lagged refreshes from the same start;
+    one over RACE_RATIO times the other's loss is dropped there, without its lens step or the rest of its refreshes
+    (held-out synthetic case 0: equisolid 2.04 against equidistant 0.60 after three refreshes, which then ran six and
+    five), and the other, carried on, stands. Here any difference drops (RACE_RATIO 1)."""
+    import re
+
+    import skyfit
+
+    asked = []
+
+    def lens_from_sun(problem, x, projection):
+        asked.append(projection)
+        return None, "not measured in this test"
+
+    monkeypatch.setattr(fit_photo_module, "lens_from_sun", lens_from_sun)
+    monkeypatch.setattr(fit_photo_module, "projection_decision", lambda candidates, detected: list(candidates[:2]))
+    monkeypatch.setattr(fit_photo_module, "RUNNER_UP_RATIO", 1e9)
+    monkeypatch.setattr(fit_photo_module, "RACE_RATIO", 1.0)
+    pf = skyfit.fit_photo(photos / "sky.jpg", time=T1, location=LOC, config=photos / "cheap.yaml", laplace=False)
+    notes = pf.result["notes"]
+    dropped = [n for n in notes if n.endswith("dropped")]
+    assert len(dropped) == 1 and not any(n.startswith("the runner-up projection") for n in notes), notes
+    m = re.search(r"the (\w+) fit's loss ([\d.e+-]+) is over 1x the (\w+) fit's ([\d.e+-]+)", dropped[0])
+    assert m and float(m.group(2)) > float(m.group(4)), dropped[0]
+    kept = m.group(3)
+    assert pf.result["camera"]["projection"] == kept and asked == [kept]
+

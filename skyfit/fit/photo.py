@@ -800,6 +800,20 @@ others, at 1.01-24.7; the 8 with ratios of 1.5 or more each paid a second full f
 of 88 s; docs/photos.md, "The factor follows g"). [1]"""
 
 
+RACE_REFRESHES = 3
+"""Where a runner-up projection is fitted in full (:data:`RUNNER_UP_RATIO`), both fits run this many lagged refreshes
+from the same start and are compared (:func:`fit_scene`); where neither is dropped (:data:`RACE_RATIO`) each goes on
+to :data:`MS_REFRESHES` in all. From the default AOD 0.1 two refreshes are trust-region steps (:data:`MS_AOD_TRUST`)
+and tell little: held-out synthetic case 14 (AOD 0.50) after two, equisolid 0.52 against the true equidistant's 0.58,
+after three 0.54 against 0.24 (converged 0.55 and 0.20); held-out case 0 (AOD 0.39) 3.32 / 3.09, then 2.04 / 0.60
+(converged 0.95 and 0.09). [1]"""
+RACE_RATIO = 2.0
+"""A projection whose race fit (:data:`RACE_REFRESHES`) ends above this many times the other's loss is dropped there,
+without its remaining refreshes, probe and lens. The closest converged pair of the synthetic suites needed its lens
+to be told apart (held-out case 4: 0.278 against 0.295 without the lens, 0.169 with it; 0.278 / 0.274 after three
+refreshes), which a drop would have cut short. [1]"""
+
+
 def camera_priors(free: Sequence[str]) -> dict:
     """The camera's priors for the free names among ``vignetting``, ``gain_red``, ``gain_blue``, ``lens_radial``:
     name -> (kind, mean, sigma), kind ``linear`` (on the value) or ``log`` (on its logarithm)."""
@@ -1169,23 +1183,51 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         # the refit must also bring the sun near its detection: else the sky disagrees with that lens
         return (fit_l, lens) if kept else (fit, None)
 
+    def carried_on(sc: PhotoScene, fit):
+        """A race's fit (:data:`RACE_REFRESHES` refreshes) carried on from where it stands, with the tables it ended
+        on, to :data:`MS_REFRESHES` refreshes in all where its refreshes had not stopped by themselves."""
+        if not fit[3].convergence.get("ms_exhausted"):
+            return fit
+        start_c, last = _continuation(fit[2], fit[3].x, s.free)
+        return run(sc, start=start_c, refreshes=MS_REFRESHES - RACE_REFRESHES, tables=last,
+                   settings=dataclasses.replace(s, adam_steps=0, starts=1))
+
     t1 = _now()
     # the short fits' tables were built at the same starting atmosphere (the start moves only the heading)
-    fit = probed(scene, run(scene, start=start, tables=shared.get("tables"), settle_first=False))
+    fit = run(scene, start=start, tables=shared.get("tables"), settle_first=False,
+              refreshes=MS_REFRESHES if runner_up is None else RACE_REFRESHES)
     timings["fit_pass1"] = _now() - t1
-    t_lens = _now()
-    fit, lens = with_lens(scene, fit)
-    timings["lens"] = _now() - t_lens
+    fit_r = None
     if runner_up is not None:
         # the short fits rank the projections from a far start (unconverged on hazy skies under a high sun: 3.6 against
         # 3.3 where converged fits end at 0.23 for the true lens and 0.85 for the other); the runner-up is fitted as
         # the first was, from the same start (from the first fit's values it stayed in that fit's basin: held-out
-        # case 14, 2.19 against 1.54), with its own probe and lens (held-out case 4, a Kannala-Brandt lens: equidistant
-        # lost to equisolid at 0.295 against 0.278 without its lens and won at 0.169 with it), and the lower loss
-        # keeps its projection
+        # case 14, 2.19 against 1.54). Both race for RACE_REFRESHES refreshes; one over RACE_RATIO times the other's
+        # loss is dropped there, the rest go on with their own probe and lens (held-out case 4, a Kannala-Brandt lens:
+        # equidistant lost to equisolid at 0.295 against 0.278 without its lens and won at 0.169 with it), and the
+        # lower loss keeps its projection
         t_r = _now()
         sc_r = with_camera(scene, runner_up.camera)
-        fit_r, lens_r = with_lens(sc_r, probed(sc_r, run(sc_r, start=start, tables=shared.get("tables"), settle_first=False)))
+        fit_r = run(sc_r, start=start, tables=shared.get("tables"), settle_first=False, refreshes=RACE_REFRESHES)
+        timings["projection_runner_up"] = _now() - t_r
+        la, lr = fit[3].loss, fit_r[3].loss
+        if max(la, lr) > RACE_RATIO * min(la, lr):
+            (kept, lk), (dropped, ld) = sorted([(scene.camera.projection, la), (runner_up.projection, lr)], key=lambda v: v[1])
+            scene.notes.append(f"after {RACE_REFRESHES} refreshes from the same start the {dropped} fit's loss {ld:.5g} "
+                               f"is over {RACE_RATIO:g}x the {kept} fit's {lk:.5g}: {dropped} dropped")
+            if lr < la:
+                sc_r.candidates = [runner_up] + [c for c in scene.candidates if c is not runner_up]
+                scene, fit = sc_r, fit_r
+            fit_r = None
+    t1 = _now()
+    fit = probed(scene, fit if runner_up is None else carried_on(scene, fit))
+    timings["fit_pass1"] += _now() - t1
+    t_lens = _now()
+    fit, lens = with_lens(scene, fit)
+    timings["lens"] = _now() - t_lens
+    if fit_r is not None:
+        t_r = _now()
+        fit_r, lens_r = with_lens(sc_r, probed(sc_r, carried_on(sc_r, fit_r)))
         better = fit_r[3].loss < fit[3].loss
         scene.notes.append(f"the runner-up projection {runner_up.projection} fitted from the same start: loss "
                            f"{fit_r[3].loss:.5g} against {fit[3].loss:.5g} for {scene.camera.projection} "
@@ -1193,7 +1235,7 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         if better:
             sc_r.candidates = [runner_up] + [c for c in scene.candidates if c is not runner_up]
             scene, fit, lens = sc_r, fit_r, lens_r
-        timings["projection_runner_up"] = _now() - t_r
+        timings["projection_runner_up"] += _now() - t_r
     blocks, prep, problem, res = fit
     if second_pass:
         t2 = _now()
@@ -1691,7 +1733,7 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
     else:
         freeze_tables(problem, x, bruneton)
     _start_at(problem, problem.profile_exposure(x))
-    res, k, change, best, rebuilt = None, 0, math.inf, None, None
+    res, k, change, best, rebuilt, exhausted = None, 0, math.inf, None, None, False
     for k in range(max(1, refreshes)):
         res = optimise(problem, options)
         if best is None or res.loss < best[0]:
@@ -1742,7 +1784,10 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
             break
         _start_at(problem, x)
         options = dataclasses.replace(options, adam_steps=0, starts=1)  # near the optimum: L-BFGS alone
+    else:
+        exhausted = True
     res.convergence["ms_refreshes"] = k + 1
+    res.convergence["ms_exhausted"] = exhausted  # the refreshes ran out (no stop by settling or a runaway)
     res.convergence["ms_factor_change"] = change
     res.convergence["ms_table_builds"] = getattr(problem, "table_builds", 0)
     return res
