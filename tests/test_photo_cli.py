@@ -795,11 +795,9 @@ def test_a_scene_under_another_camera_keeps_the_sun_mask_radius_it_was_given(pho
     assert small.masks["sun"].sum() < default.masks["sun"].sum()  # the radius matters on this photo
 
 
-def test_the_runner_up_projection_gets_its_own_lens_before_the_losses_are_compared(photos, monkeypatch):
-    """Where the short fits leave a runner-up projection, its full fit goes through the same steps as the first's
-    (the strain probe, the lens measured from the sun) before the two losses are compared: on held-out synthetic case 4
-    (a Kannala-Brandt lens) equidistant lost to equisolid without its lens (0.295 against 0.278) and won with it (0.169;
-    docs/photos.md). The lens step is asked once per projection and the comparison is noted."""
+def _two_projections(photos, monkeypatch, race_ratio: float):
+    """fit_photo of the test photo with its two first candidate projections left to the fit (the runner-up fitted
+    too) and RACE_RATIO ``race_ratio``; the lens step stubbed to record which projection asked it: (result, asked)."""
     import skyfit
 
     asked = []
@@ -811,9 +809,18 @@ def test_the_runner_up_projection_gets_its_own_lens_before_the_losses_are_compar
     monkeypatch.setattr(fit_photo_module, "lens_from_sun", lens_from_sun)
     monkeypatch.setattr(fit_photo_module, "projection_decision", lambda candidates, detected: list(candidates[:2]))
     monkeypatch.setattr(fit_photo_module, "RUNNER_UP_RATIO", 1e9)
-    monkeypatch.setattr(fit_photo_module, "RACE_RATIO", 1e9)  # neither is dropped after the race's refreshes
+    monkeypatch.setattr(fit_photo_module, "RACE_RATIO", race_ratio)
     pf = skyfit.fit_photo(photos / "sky.jpg", time=T1, location=LOC, config=photos / "cheap.yaml", laplace=False)
-    notes = pf.result["notes"]
+    return pf.result, asked
+
+
+def test_the_runner_up_projection_gets_its_own_lens_before_the_losses_are_compared(photos, monkeypatch):
+    """Where the short fits leave a runner-up projection, its full fit goes through the same steps as the first's
+    (the strain probe, the lens measured from the sun) before the two losses are compared: on held-out synthetic case 4
+    (a Kannala-Brandt lens) equidistant lost to equisolid without its lens (0.295 against 0.278) and won with it (0.169;
+    docs/photos.md). The lens step is asked once per projection and the comparison is noted."""
+    result, asked = _two_projections(photos, monkeypatch, 1e9)  # neither is dropped after the race's refreshes
+    notes = result["notes"]
     runner = [n for n in notes if n.startswith("the runner-up projection")]
     assert len(runner) == 1, notes
     assert len(asked) == 2 and len(set(asked)) == 2, asked
@@ -827,24 +834,12 @@ def test_a_projection_far_behind_after_the_race_is_dropped_there(photos, monkeyp
     five), and the other, carried on, stands. Here any difference drops (RACE_RATIO 1)."""
     import re
 
-    import skyfit
-
-    asked = []
-
-    def lens_from_sun(problem, x, projection):
-        asked.append(projection)
-        return None, "not measured in this test"
-
-    monkeypatch.setattr(fit_photo_module, "lens_from_sun", lens_from_sun)
-    monkeypatch.setattr(fit_photo_module, "projection_decision", lambda candidates, detected: list(candidates[:2]))
-    monkeypatch.setattr(fit_photo_module, "RUNNER_UP_RATIO", 1e9)
-    monkeypatch.setattr(fit_photo_module, "RACE_RATIO", 1.0)
-    pf = skyfit.fit_photo(photos / "sky.jpg", time=T1, location=LOC, config=photos / "cheap.yaml", laplace=False)
-    notes = pf.result["notes"]
+    result, asked = _two_projections(photos, monkeypatch, 1.0)
+    notes = result["notes"]
     dropped = [n for n in notes if n.endswith("dropped")]
     assert len(dropped) == 1 and not any(n.startswith("the runner-up projection") for n in notes), notes
     m = re.search(r"the (\w+) fit's loss ([\d.e+-]+) is over 1x the (\w+) fit's ([\d.e+-]+)", dropped[0])
     assert m and float(m.group(2)) > float(m.group(4)), dropped[0]
     kept = m.group(3)
-    assert pf.result["camera"]["projection"] == kept and asked == [kept]
+    assert result["camera"]["projection"] == kept and asked == [kept]
 
