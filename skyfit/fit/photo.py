@@ -11,7 +11,8 @@ as plain functions on in-memory objects:
    aureole, its place on that axis), one candidate camera per projection with the heading that puts
    the computed sun on the detected one, ranked by how well each projection puts it at the detected
    radius; projections the sun cannot tell apart (:func:`projection_decision`) are fitted briefly, the
-   best two are converged and the lower loss wins; ``camera=`` (a :class:`~skyfit.camera.FisheyeCamera` or
+   best two race for :data:`RACE_REFRESHES` refreshes (one far behind is dropped there), the rest are
+   converged and the lower loss wins; ``camera=`` (a :class:`~skyfit.camera.FisheyeCamera` or
    CAMERA.yaml) skips this;
 4. **what is not sky** (:mod:`skyfit.camera.masks`): outside the circle, below the horizon, the
    sun's disc and flare, horizon obstacles, the user's mask; saturated and black pixels are
