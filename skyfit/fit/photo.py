@@ -1137,6 +1137,17 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         for deg in (0.0, 90.0, 180.0, 270.0):
             tries.append((quick_run(scene, start={"sun_azimuth_offset": math.radians(deg)}).loss, deg))
         start = {"sun_azimuth_offset": math.radians(min(tries)[1])}
+    def carried_on(sc: PhotoScene, fit, done: int):
+        """``fit``, stopped after ``done`` lagged refreshes (a winning strain probe, a race's fit), carried on from
+        where it stands, with the tables it ended on, to :data:`MS_REFRESHES` refreshes in all."""
+        start_c, last = _continuation(fit[2], fit[3].x, s.free)
+        return run(sc, start=start_c, refreshes=MS_REFRESHES - done, tables=last,
+                   settings=dataclasses.replace(s, adam_steps=0, starts=1))
+
+    def raced_on(sc: PhotoScene, fit):
+        """A race's fit carried on where its refreshes ran out rather than stopped by themselves."""
+        return carried_on(sc, fit, RACE_REFRESHES) if fit[3].convergence.get("ms_exhausted") else fit
+
     def probed(sc: PhotoScene, fit):
         """``fit`` or, where its camera nuisances strained their priors (:data:`PRIOR_STRAIN_LEVEL`), the refit from
         the other side of the aerosol's range when that fits better."""
@@ -1154,9 +1165,7 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         fit_p = run(sc, start={**(start or {}), "mie_aod_550": probe}, refreshes=PROBE_REFRESHES)
         if fit_p[3].loss < res.loss and fit_p[3].convergence.get("ms_refreshes", 0) >= PROBE_REFRESHES:
             # a probe that wins but has not settled goes on, from where it stands, with the tables it ended on
-            start_p, last = _continuation(fit_p[2], fit_p[3].x, s.free)
-            fit_p = run(sc, start=start_p, refreshes=MS_REFRESHES - PROBE_REFRESHES, tables=last,
-                        settings=dataclasses.replace(s, adam_steps=0, starts=1))
+            fit_p = carried_on(sc, fit_p, PROBE_REFRESHES)
         better = fit_p[3].loss < res.loss
         sc.notes.append(f"the camera's nuisances (gains, saturations, vignetting) of the {sc.camera.projection} fit strained "
                         f"their priors (sum z^2 {strain:.1f} > {limit:.4g}): refitted from AOD {probe:g}, loss "
@@ -1183,15 +1192,6 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
                         f"the sun {miss:.2f} deg from its detection after the refit, {before:.2f} before")
         # the refit must also bring the sun near its detection: else the sky disagrees with that lens
         return (fit_l, lens) if kept else (fit, None)
-
-    def carried_on(sc: PhotoScene, fit):
-        """A race's fit (:data:`RACE_REFRESHES` refreshes) carried on from where it stands, with the tables it ended
-        on, to :data:`MS_REFRESHES` refreshes in all where its refreshes had not stopped by themselves."""
-        if not fit[3].convergence.get("ms_exhausted"):
-            return fit
-        start_c, last = _continuation(fit[2], fit[3].x, s.free)
-        return run(sc, start=start_c, refreshes=MS_REFRESHES - RACE_REFRESHES, tables=last,
-                   settings=dataclasses.replace(s, adam_steps=0, starts=1))
 
     t1 = _now()
     # the short fits' tables were built at the same starting atmosphere (the start moves only the heading)
@@ -1221,14 +1221,14 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
                 scene, fit = sc_r, fit_r
             fit_r = None
     t1 = _now()
-    fit = probed(scene, fit if runner_up is None else carried_on(scene, fit))
+    fit = probed(scene, fit if runner_up is None else raced_on(scene, fit))
     timings["fit_pass1"] += _now() - t1
     t_lens = _now()
     fit, lens = with_lens(scene, fit)
     timings["lens"] = _now() - t_lens
     if fit_r is not None:
         t_r = _now()
-        fit_r, lens_r = with_lens(sc_r, probed(sc_r, carried_on(sc_r, fit_r)))
+        fit_r, lens_r = with_lens(sc_r, probed(sc_r, raced_on(sc_r, fit_r)))
         better = fit_r[3].loss < fit[3].loss
         scene.notes.append(f"the runner-up projection {runner_up.projection} fitted from the same start: loss "
                            f"{fit_r[3].loss:.5g} against {fit[3].loss:.5g} for {scene.camera.projection} "
