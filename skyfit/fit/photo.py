@@ -59,6 +59,7 @@ from .model import FitProblem, aerosol_log_depth, applied_lens, lens_directions,
 from .optimise import fit as optimise
 from .parameters import CAMERA_RESPONSE, NUISANCE
 from .problem import fit_settings, make_model, prepare
+from .side_by_side import in_child, side_by_side
 
 if TYPE_CHECKING:
     from .model import SkyModel
@@ -814,6 +815,12 @@ without its remaining refreshes, probe and lens. The closest converged pair of t
 to be told apart (held-out case 4: 0.278 against 0.295 without the lens, 0.169 with it; 0.278 / 0.274 after three
 refreshes), which a drop would have cut short. [1]"""
 
+RACE_SAMPLES = QUICK_SAMPLES
+"""Blocks of the race's fits (:data:`RACE_REFRESHES`): the race only ranks the two projections, whose losses stand 2x
+or more apart where one is dropped (:data:`RACE_RATIO`); the fit that goes on is carried over the photo's
+:data:`TARGET_SAMPLES` blocks from where it stands. On held-out synthetic case 14 the race took 20 s instead of 26 s
+per projection, the same projection dropped, the AOD 0.447 both ways (docs/photos.md, "The race side by side"). [1]"""
+
 
 def camera_priors(free: Sequence[str]) -> dict:
     """The camera's priors for the free names among ``vignetting``, ``gain_red``, ``gain_blue``, ``lens_radial``:
@@ -1091,7 +1098,7 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         problem = PhotoProblem.of(prep.problem(free, settings.per_observation, {**settings.initial, **(start or {})}),
                                   camera_priors(free), sun_datum(sc.camera, sc.detected_sun))
         problem.follow = settings.ms_follow
-        options = settings.options(progress)
+        options = settings.options(progress and not in_child())  # a side-by-side branch's child draws no bar
         if (problem.priors or problem.sun is not None) and getattr(options, "method", None) not in (None, "lbfgs"):
             # the priors and the sun datum live in the objective, not in residuals
             options = dataclasses.replace(options, method="lbfgs")
@@ -1137,16 +1144,40 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         for deg in (0.0, 90.0, 180.0, 270.0):
             tries.append((quick_run(scene, start={"sun_azimuth_offset": math.radians(deg)}).loss, deg))
         start = {"sun_azimuth_offset": math.radians(min(tries)[1])}
-    def carried_on(sc: PhotoScene, fit, done: int):
+    def carried_on(sc: PhotoScene, fit, done: int, settle_first=None):
         """``fit``, stopped after ``done`` lagged refreshes (a winning strain probe, a race's fit), carried on from
         where it stands, with the tables it ended on, to :data:`MS_REFRESHES` refreshes in all."""
         start_c, last = _continuation(fit[2], fit[3].x, s.free)
-        return run(sc, start=start_c, refreshes=MS_REFRESHES - done, tables=last,
+        return run(sc, start=start_c, refreshes=MS_REFRESHES - done, tables=last, settle_first=settle_first,
                    settings=dataclasses.replace(s, adam_steps=0, starts=1))
 
     def raced_on(sc: PhotoScene, fit):
-        """A race's fit carried on where its refreshes ran out rather than stopped by themselves."""
-        return carried_on(sc, fit, RACE_REFRESHES) if fit[3].convergence.get("ms_exhausted") else fit
+        """A race's fit (on :data:`RACE_SAMPLES` blocks, its last fit against tables built before it) carried on over
+        the photo's blocks from where it stands; its first refit rebuilds the tables at its result."""
+        return carried_on(sc, fit, min(RACE_REFRESHES, fit[3].convergence.get("ms_refreshes", RACE_REFRESHES)),
+                          settle_first=False)
+
+    def branches(*work):
+        """``fn(sc)`` for each ``(sc, fn)`` of ``work``, side by side where the machine allows
+        (:func:`skyfit.fit.side_by_side.side_by_side`). Each runs on a copy of its scene with notes of its own, which
+        are added to the scene's in order, as are its table builds: the result is the same whichever way they ran."""
+        def branch(sc, fn):
+            def call():
+                mine, before = dataclasses.replace(sc, notes=[]), shared.get("builds", 0)
+                out = fn(mine)
+                builds, shared["builds"] = shared.get("builds", 0) - before, before
+                return out, mine.notes, builds
+            return call
+        outs = side_by_side([branch(sc, fn) for sc, fn in work], device=device)
+        for (sc, _), (_, notes, builds) in zip(work, outs):
+            sc.notes.extend(notes)
+            shared["builds"] = shared.get("builds", 0) + builds
+        return [out for out, _, _ in outs]
+
+    def promoted(sc: PhotoScene, cand) -> PhotoScene:
+        """``sc`` (the scene under candidate ``cand``) with ``cand`` first among the candidates."""
+        sc.candidates = [cand] + [c for c in scene.candidates if c is not cand]
+        return sc
 
     def probed(sc: PhotoScene, fit):
         """``fit`` or, where its camera nuisances strained their priors (:data:`PRIOR_STRAIN_LEVEL`), the refit from
@@ -1194,49 +1225,48 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         return (fit_l, lens) if kept else (fit, None)
 
     t1 = _now()
-    # the short fits' tables were built at the same starting atmosphere (the start moves only the heading)
-    fit = run(scene, start=start, tables=shared.get("tables"), settle_first=False,
-              refreshes=MS_REFRESHES if runner_up is None else RACE_REFRESHES)
-    timings["fit_pass1"] = _now() - t1
-    fit_r = None
-    if runner_up is not None:
+    fit_r, lens = None, None
+    if runner_up is None:
+        # the short fits' tables were built at the same starting atmosphere (the start moves only the heading)
+        fit = probed(scene, run(scene, start=start, tables=shared.get("tables"), settle_first=False))
+        timings["fit_pass1"] = _now() - t1
+    else:
         # the short fits rank the projections from a far start (unconverged on hazy skies under a high sun: 3.6 against
         # 3.3 where converged fits end at 0.23 for the true lens and 0.85 for the other); the runner-up is fitted as
         # the first was, from the same start (from the first fit's values it stayed in that fit's basin: held-out
-        # case 14, 2.19 against 1.54). Both race for RACE_REFRESHES refreshes; one over RACE_RATIO times the other's
-        # loss is dropped there, the rest go on with their own probe and lens (held-out case 4, a Kannala-Brandt lens:
-        # equidistant lost to equisolid at 0.295 against 0.278 without its lens and won at 0.169 with it), and the
-        # lower loss keeps its projection
-        t_r = _now()
+        # case 14, 2.19 against 1.54). Both race for RACE_REFRESHES refreshes on RACE_SAMPLES blocks, side by side; one
+        # over RACE_RATIO times the other's loss is dropped there, the rest go on over all the blocks with their own
+        # probe and lens (held-out case 4, a Kannala-Brandt lens: equidistant lost to equisolid at 0.295 against 0.278
+        # without its lens and won at 0.169 with it), and the lower loss keeps its projection
         sc_r = with_camera(scene, runner_up.camera)
-        fit_r = run(sc_r, start=start, tables=shared.get("tables"), settle_first=False, refreshes=RACE_REFRESHES)
-        timings["projection_runner_up"] = _now() - t_r
+        race = dict(start=start, tables=shared.get("tables"), settle_first=False, refreshes=RACE_REFRESHES,
+                    target=RACE_SAMPLES, refresh_last=False)
+        fit, fit_r = branches((scene, lambda sc: run(sc, **race)), (sc_r, lambda sc: run(sc, **race)))
+        timings["race"] = _now() - t1
         la, lr = fit[3].loss, fit_r[3].loss
+        t1 = _now()
         if max(la, lr) > RACE_RATIO * min(la, lr):
             (kept, lk), (dropped, ld) = sorted([(scene.camera.projection, la), (runner_up.projection, lr)], key=lambda v: v[1])
             scene.notes.append(f"after {RACE_REFRESHES} refreshes from the same start the {dropped} fit's loss {ld:.5g} "
                                f"is over {RACE_RATIO:g}x the {kept} fit's {lk:.5g}: {dropped} dropped")
             if lr < la:
-                sc_r.candidates = [runner_up] + [c for c in scene.candidates if c is not runner_up]
-                scene, fit = sc_r, fit_r
-            fit_r = None
-    t1 = _now()
-    fit = probed(scene, fit if runner_up is None else raced_on(scene, fit))
-    timings["fit_pass1"] += _now() - t1
-    t_lens = _now()
-    fit, lens = with_lens(scene, fit)
-    timings["lens"] = _now() - t_lens
-    if fit_r is not None:
-        t_r = _now()
-        fit_r, lens_r = with_lens(sc_r, probed(sc_r, raced_on(sc_r, fit_r)))
-        better = fit_r[3].loss < fit[3].loss
-        scene.notes.append(f"the runner-up projection {runner_up.projection} fitted from the same start: loss "
-                           f"{fit_r[3].loss:.5g} against {fit[3].loss:.5g} for {scene.camera.projection} "
-                           f"({runner_up.projection if better else scene.camera.projection} kept)")
-        if better:
-            sc_r.candidates = [runner_up] + [c for c in scene.candidates if c is not runner_up]
-            scene, fit, lens = sc_r, fit_r, lens_r
-        timings["projection_runner_up"] += _now() - t_r
+                scene, fit = promoted(sc_r, runner_up), fit_r
+            fit, fit_r = probed(scene, raced_on(scene, fit)), None
+        else:
+            (fit, lens), (fit_r, lens_r) = branches(
+                (scene, lambda sc, f=fit: with_lens(sc, probed(sc, raced_on(sc, f)))),
+                (sc_r, lambda sc, f=fit_r: with_lens(sc, probed(sc, raced_on(sc, f)))))
+            better = fit_r[3].loss < fit[3].loss
+            scene.notes.append(f"the runner-up projection {runner_up.projection} fitted from the same start: loss "
+                               f"{fit_r[3].loss:.5g} against {fit[3].loss:.5g} for {scene.camera.projection} "
+                               f"({runner_up.projection if better else scene.camera.projection} kept)")
+            if better:
+                scene, fit, lens = promoted(sc_r, runner_up), fit_r, lens_r
+        timings["fit_pass1"] = _now() - t1
+    if fit_r is None:
+        t_lens = _now()
+        fit, lens = with_lens(scene, fit)
+        timings["lens"] = _now() - t_lens
     blocks, prep, problem, res = fit
     if second_pass:
         t2 = _now()
@@ -1597,6 +1627,45 @@ def share_log_ratios(factor: list[torch.Tensor], factor1: list[torch.Tensor]) ->
     return out
 
 
+@dataclasses.dataclass(eq=False)
+class TableFactor:
+    """Each observation's factor of multiple scattering from Bruneton ``tables`` at a view and sun geometry, with the
+    anchors :func:`multiple_from_tables` fixed where it first looked them up: differentiable in the geometry. A class
+    rather than a closure so that a fit's state pickles (a side-by-side branch sends it back,
+    :mod:`skyfit.fit.side_by_side`)."""
+
+    problem: FitProblem
+    tables: object
+    atm: object  # the atmosphere the tables were looked up in (its geometry), and ``sub`` on the tables' wavelengths
+    sub: object
+    interp: torch.Tensor | None
+    anchors: list
+
+    def lookup(self, ph: dict, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The tables' (all orders, first order) at observation i's geometry under ``ph``, each (N_i, W_nodes)."""
+        from ..scattering.multiple import sky_radiance
+        from ..scattering.single import ray_parameters
+
+        problem = self.problem
+        o = problem.observations[i]
+        sun = problem.sun_vectors(ph, i)
+        r, mu, mu_s, nu = ray_parameters(self.atm, problem.view_directions(ph, i), sun[o.mask] if sun.ndim == 2 else sun,
+                                         o.altitude_m)
+        return (sky_radiance(self.tables, self.sub, r, mu, mu_s, nu, below_mu_s_min="clamp"),
+                sky_radiance(self.tables, self.sub, r, mu, mu_s, nu, orders=1, below_mu_s_min="clamp"))
+
+    def factor(self, every: torch.Tensor, first: torch.Tensor, i: int) -> torch.Tensor:
+        """1 + (every - first) / first x observation i's anchor, on the model's wavelengths, (N_i, W)."""
+        ok, anchor = self.anchors[i]
+        f = 1.0 + torch.where(ok, (every - first) / torch.where(ok, first, torch.ones_like(first)),
+                              torch.zeros_like(first)) * anchor
+        return f if self.interp is None else f @ self.interp
+
+    def __call__(self, ph: dict, i: int) -> torch.Tensor:
+        """Observation i's factor at the geometry of ``ph`` (the same tables and anchor): differentiable in it."""
+        return self.factor(*self.lookup(ph, i), i)
+
+
 def multiple_from_tables(problem: FitProblem, x: torch.Tensor, tables, nodes: np.ndarray | None = None,
                          follow_geometry: bool = True) -> list[torch.Tensor]:
     """Each observation's factor of multiple scattering from Bruneton ``tables``, (N_i, W): all orders over the
@@ -1608,9 +1677,6 @@ def multiple_from_tables(problem: FitProblem, x: torch.Tensor, tables, nodes: np
     A factor rather than the added radiance: multiple scattering grows with the scattering much as single
     scattering does, so the ratio moves little while a fit moves the aerosol; the added radiance held fixed made
     the refreshes oscillate (on a hazy synthetic photo the aerosol went 0.41 -> 0.24 -> 1.27 -> 0.82)."""
-    from ..scattering.multiple import sky_radiance
-    from ..scattering.single import ray_parameters
-
     out, anchors = [], []
     with torch.no_grad():
         phys = problem.param.to_physical(x)
@@ -1625,24 +1691,9 @@ def multiple_from_tables(problem: FitProblem, x: torch.Tensor, tables, nodes: np
             finally:
                 problem.frozen_factor = held
 
-        def lookup(ph: dict, i: int) -> tuple[torch.Tensor, torch.Tensor]:
-            """The tables' (all orders, first order) at observation i's geometry under ``ph``, each (N_i, W_nodes)."""
-            o = problem.observations[i]
-            sun = problem.sun_vectors(ph, i)
-            r, mu, mu_s, nu = ray_parameters(atm, problem.view_directions(ph, i), sun[o.mask] if sun.ndim == 2 else sun,
-                                             o.altitude_m)
-            return (sky_radiance(tables, sub, r, mu, mu_s, nu, below_mu_s_min="clamp"),
-                    sky_radiance(tables, sub, r, mu, mu_s, nu, orders=1, below_mu_s_min="clamp"))
-
-        def factor(every: torch.Tensor, first: torch.Tensor, i: int) -> torch.Tensor:
-            """1 + (every - first) / first x observation i's anchor, on the model's wavelengths, (N_i, W)."""
-            ok, anchor = anchors[i]
-            f = 1.0 + torch.where(ok, (every - first) / torch.where(ok, first, torch.ones_like(first)),
-                                  torch.zeros_like(first)) * anchor
-            return f if interp is None else f @ interp
-
+        follow = TableFactor(problem, tables, atm, sub, interp, anchors)
         for i, o in enumerate(problem.observations):
-            every, first = lookup(phys, i)
+            every, first = follow.lookup(phys, i)
             # f = 1 + (every - first) / first * anchor: anchor = first / live single where the live single scattering
             # anchors the factor (the tables' error in single scattering then cancels at x), else 1 (every / first)
             ok = first > 1e-12 * first.abs().max()
@@ -1653,11 +1704,7 @@ def multiple_from_tables(problem: FitProblem, x: torch.Tensor, tables, nodes: np
             else:
                 anchor = ok.to(first.dtype)
             anchors.append((ok, anchor))
-            out.append(factor(every, first, i))
-
-    def follow(ph: dict, i: int) -> torch.Tensor:
-        """Observation i's factor at the geometry of ``ph`` (the same tables and anchor): differentiable in it."""
-        return factor(*lookup(ph, i), i)
+            out.append(follow.factor(every, first, i))
 
     if follow_geometry:  # the problem's factor from now on (not a stepped one's, :func:`aod_slope`)
         moving = any(n in problem.param.free for n in GEOMETRY_NAMES)
