@@ -606,7 +606,8 @@ def _add_fit_parsers(sub) -> None:
     f.add_argument("--select-sigma", choices=("scaled", "known"),
                    help="--select: data sigma known up to a fitted common factor (default) or exactly")
     f.add_argument("--heldout", type=float, help=f"--select: fraction of samples held out of the fits (default {D.select_heldout:g})")
-    f.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's; 1 is fastest for small fits on a busy machine)")
+    f.add_argument("--threads", type=int, help="torch intra-op threads (default: torch's; 1 is fastest for small fits on a busy machine; "
+                   "a photo fit with 2 or more runs its independent branches side by side, one process each)")
     f.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="tqdm bar (default: on a terminal)")
     f.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (CUDA when present); default cpu")
     f.add_argument("--dtype", choices=("float32", "float64"), help=f"working precision (default {D.dtype})")

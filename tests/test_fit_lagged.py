@@ -412,3 +412,32 @@ def test_a_refit_starts_from_the_factor_a_settled_fit_ended_on(sky4, monkeypatch
     off = float((before / ended - 1.0).abs().max())
     print(f"AOD {built_aod:.5f} -> {aod:.5f}; taken as built at the result the start's model is off by {off:.2e}")
     assert off > 1e-6
+
+
+def test_a_fit_with_its_frozen_tables_and_table_factor_pickles_whole(sky4):
+    """A side-by-side branch (skyfit.fit.side_by_side) sends its fit back pickled: the problem with its Bruneton
+    tables, slopes and the table factor that follows the view and sun geometry (skyfit.fit.photo.TableFactor, a class
+    where it was a closure) must come back as the same model: equal objective and gradient at the fit's result and
+    at a heading the factor is followed to."""
+    import pickle
+
+    from skyfit.fit import photo as fp
+
+    free = ["mie_aod_550", "exposure", "sun_azimuth_offset"]
+    options = fit_settings({"starts": 1, "adam_steps": 0, "max_iter": 10}).options(False)
+    problem = fp.PhotoProblem.of(_problem(sky4, free), {})
+    res = fp.lagged_fit(problem, options, refreshes=1, bruneton=problem.model.factor_model())
+    assert isinstance(problem.frozen_follow[1], fp.TableFactor)
+    back = pickle.loads(pickle.dumps(problem))
+    assert back.frozen_follow[1].problem is back  # the factor looks up through the copy, not the original
+    moved = res.x.clone()
+    moved[problem.param.free.index("sun_azimuth_offset")] += 0.05
+    for x in (res.x, moved):
+        grads = []
+        for p in (problem, back):
+            xx = x.detach().clone().requires_grad_(True)
+            loss = p.objective(xx)
+            loss.backward()
+            grads.append((loss.item(), xx.grad))
+        assert grads[1][0] == grads[0][0]
+        assert torch.equal(grads[1][1], grads[0][1])

@@ -18,6 +18,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -843,3 +845,69 @@ def test_a_projection_far_behind_after_the_race_is_dropped_there(photos, monkeyp
     kept = m.group(3)
     assert result["camera"]["projection"] == kept and asked == [kept]
 
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="branches fork only on Linux")
+@pytest.mark.parametrize("race_ratio", [1.0, 1e9])
+def test_the_race_side_by_side_gives_the_fit_of_one_branch_after_the_other(photos, monkeypatch, race_ratio):
+    """The short fits of the two projections, the race's two fits, and where neither is dropped the rest of both, run
+    in forked processes (skyfit.fit.side_by_side) where the machine has threads to share out; with one torch thread
+    per branch (the test's) the fit, its notes and its table builds equal those of the branches run here one after
+    the other: each branch's fit state comes back whole (its tables and table factor: test_fit_lagged.py)."""
+    from skyfit.fit import side_by_side as sbs
+
+    monkeypatch.setattr(sbs, "ENABLED", False)
+    serial, _ = _two_projections(photos, monkeypatch, race_ratio)
+    monkeypatch.setattr(sbs, "can_fork", lambda device="cpu": True)
+    forked = []
+    real = sbs.side_by_side
+
+    def counted(calls, device="cpu"):
+        forked.append(len(calls))
+        return real(calls, device)
+
+    monkeypatch.setattr(fit_photo_module, "side_by_side", counted)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", sbs.BranchLostWarning)  # each child's fit came back (none was rerun here)
+        parallel, _ = _two_projections(photos, monkeypatch, race_ratio)
+    assert forked == ([2, 2] if race_ratio == 1.0 else [2, 2, 2])  # the short fits, the race (and both carried on)
+    assert parallel["notes"] == serial["notes"]
+    assert parallel["camera"]["projection"] == serial["camera"]["projection"]
+    assert parallel["convergence"]["ms_table_builds"] == serial["convergence"]["ms_table_builds"]
+    for k in ("aod_550", "angstrom_alpha", "g"):
+        assert parallel["aerosol"][k] == pytest.approx(serial["aerosol"][k], rel=1e-12, abs=1e-15), k
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="branches fork only on Linux")
+def test_a_hidden_suns_starting_headings_are_tried_side_by_side(photos, monkeypatch):
+    """Without a detected sun the heading comes from short fits from four headings 90 deg apart, the lowest loss
+    winning. Side by side (four branches) they start the fit where one after the other did, and the fitted camera's
+    heading is the photo's."""
+    import skyfit
+    from skyfit.fit import side_by_side as sbs
+
+    real = fit_photo_module.prepare_scene
+
+    def hidden(*args, **kw):
+        scene = real(*args, **kw)
+        scene.detected_sun = None
+        return scene
+
+    monkeypatch.setattr(fit_photo_module, "prepare_scene", hidden)
+    monkeypatch.setattr(fit_photo_module, "projection_decision", lambda candidates, detected: list(candidates[:1]))
+    results, forked = [], []
+    for fork in (False, True):
+        monkeypatch.setattr(sbs, "can_fork", lambda device="cpu", fork=fork: fork)
+        monkeypatch.setattr(fit_photo_module, "side_by_side", lambda calls, device="cpu": forked.append(len(calls))
+                            or sbs.side_by_side(calls, device))
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", sbs.BranchLostWarning)
+            results.append(skyfit.fit_photo(photos / "sky.jpg", time=T1, location=LOC, config=photos / "cheap.yaml",
+                                            laplace=False).result)
+    assert forked == [4, 4]
+    serial, parallel = results
+    assert parallel["notes"] == serial["notes"]
+    assert parallel["aerosol"]["aod_550"] == pytest.approx(serial["aerosol"]["aod_550"], rel=1e-12)
+    heading = parallel["camera"]["up_azimuth_deg"]
+    assert heading == pytest.approx(serial["camera"]["up_azimuth_deg"], abs=1e-9)
+    assert abs((heading - CAM["up_azimuth_deg"] + 180) % 360 - 180) < 8.0  # 5 iterations: loose, as above

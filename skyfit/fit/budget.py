@@ -211,13 +211,22 @@ def numerical_shift(problem: FitProblem, x: Tensor, cov_x: Tensor, reference: Fi
             "rms": math.sqrt(num / n)}
 
 
+def shares_factor(problem: FitProblem, reference: FitProblem) -> bool:
+    """Whether the reference keeps the fit's own frozen multiple-scattering factor: a photo's Bruneton orders, lagged
+    on live single scattering, under a single-scattering reference (:func:`reference_problem`)."""
+    return problem.frozen_factor is not None and reference.frozen_factor is not None
+
+
 def reference_factor(problem: FitProblem, reference: FitProblem, x: Tensor) -> list[Tensor]:
-    """Per observation, the spectra of the reference over the fit's at x, (N_i, W) [1] (times the fit's own
-    frozen factor, when it has one): the fit's renderer times it is the reference at x."""
+    """Per observation, the spectra of the reference over the fit's at x, (N_i, W) [1]: the fit's renderer times it
+    is the reference at x. Where the reference has its own multiple scattering, the fit's frozen factor is left out of
+    the fit's spectra (the ratio replaces it, :func:`held_reference`); where it keeps the fit's factor
+    (:func:`shares_factor`), both spectra carry it and the ratio is that of the single scattering alone."""
     with torch.no_grad():
         phys = problem.param.to_physical(x)
         saved = problem.frozen_factor
-        problem.frozen_factor = None
+        if not shares_factor(problem, reference):
+            problem.frozen_factor = None
         try:
             s_fit = problem.spectra(phys)
         finally:
@@ -226,12 +235,29 @@ def reference_factor(problem: FitProblem, reference: FitProblem, x: Tensor) -> l
     return [torch.where(f != 0, r / torch.where(f != 0, f, torch.ones_like(f)), torch.ones_like(f)) for r, f in zip(s_ref, s_fit)]
 
 
+def held_reference(problem: FitProblem, reference: FitProblem, factor: list[Tensor]) -> FitProblem:
+    """A copy of the fit's problem that renders the reference at the iterate ``factor`` was taken at
+    (:func:`reference_factor`), ``factor`` held fixed: in place of the fit's frozen factor, or, where the reference
+    keeps that factor (:func:`shares_factor`), on top of it, the factor still followed in the aerosol's optical depth,
+    its g and the camera's geometry as the fit followed it. Held in their place, a hazy photo's factor (1.3-2) hid how
+    the multiple scattering's share grows with the aerosol and the refits ran away from a model 0.2 % from the
+    reference (synthetic held-out case 4: steps of 11, 14 and 17 noise sigma, an AOD tail of 0.12;
+    docs/photos.md, "The race side by side")."""
+    lagged = copy.copy(problem)
+    if shares_factor(problem, reference):
+        lagged.held_ratio = factor
+    else:
+        lagged.frozen_factor = factor
+        lagged.frozen_slope = lagged.frozen_slope_g = None  # c_k held as it is (the fit's following is for its own factor)
+    return lagged
+
+
 def refit_shift(problem: FitProblem, x: Tensor, reference: FitProblem, x_start: Tensor, sigma_x: Tensor,
                 iterations: int = 2, options: FitOptions | None = None, tol: float = 0.1) -> dict:
     """The fit with the reference model, by lagged refits of the fit's renderer (brute force, no linearisation).
 
     Iteration k holds the factor c_k = m_ref(x_k) / m_fit(x_k) (spectra, per sample and wavelength)
-    fixed and refits m_fit(x) c_k from x_k (``FitProblem.frozen_factor``; as skyfit.fit.photo's lagged
+    fixed and refits m_fit(x) c_k from x_k (:func:`held_reference`; as skyfit.fit.photo's lagged
     fit); at the fixed point the gradient of the reference's likelihood is zero up to the change of
     c with x. Stops after ``iterations`` or when a step moves every parameter by less than ``tol``
     noise sigmas ``sigma_x`` (P,).
@@ -247,10 +273,7 @@ def refit_shift(problem: FitProblem, x: Tensor, reference: FitProblem, x_start: 
     last = prev = None
     for _ in range(iterations):
         factor = reference_factor(problem, reference, xk)
-        lagged = copy.copy(problem)
-        lagged.frozen_factor = factor
-        lagged.frozen_slope = None  # c_k held as it is (a photo fit's first-order following is for its own factor)
-        xn = fit(lagged, opt, x0=xk).x.detach()
+        xn = fit(held_reference(problem, reference, factor), opt, x0=xk).x.detach()
         step = float(((xn - xk).abs().to(torch.float64) / sigma_x.clamp_min(1e-300)).max())
         steps.append(step)
         prev, last = last, (xn - xk).to(torch.float64)
@@ -760,9 +783,7 @@ def numerical_term(problem: FitProblem, x: Tensor, lap: dict, *, reference: SkyM
             # one unconverged refit: the two estimates of the shift disagree by about what is left
             tail = rs["tail"] if rs["tail"] is not None else dx - dx_newton
             budget["numerical_tail"] = {n: float(t) for n, t in zip(names, transform_jacobian(problem, x.to(torch.float64)) * tail)}
-            lagged = copy.copy(problem)
-            lagged.frozen_factor = rs["factor"]
-            lagged.frozen_slope = lagged.frozen_slope_g = None
+            lagged = held_reference(problem, ref, rs["factor"])
             pol = reference_polish(problem, ref, rs["x"], polish) if polish > 0 else None
             if pol is not None:
                 budget["polish"] = {k: pol[k] for k in ("loss", "loss_start", "steps", "converged")}

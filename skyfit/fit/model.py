@@ -274,6 +274,10 @@ class FitProblem:
         """(the frozen factor it belongs to, f(phys, i) -> (N_i, W)): the factor re-evaluated at the current view
         and sun geometry (:func:`skyfit.fit.photo.multiple_from_tables`), used while :attr:`frozen_factor` is that
         factor and the geometry is fitted (heading, tilt, lens); None: the factor stays on each sample."""
+        self.held_ratio: list[Tensor] | None = None
+        """Per observation, a ratio (N_i, W) on the model after :attr:`frozen_factor`, held fixed: the error budget's
+        lagged refits of a fit whose reference keeps the fit's own multiple-scattering factor, so that the factor
+        goes on following the aerosol and the camera (:func:`skyfit.fit.budget.held_reference`). [1]"""
 
     # -- forward ----------------------------------------------------------------
     def sun_vectors(self, phys: dict, i: int) -> Tensor:
@@ -351,6 +355,8 @@ class FitProblem:
             rad = renderers[o.altitude_m](self.view_directions(phys, i), sun)
             if self.frozen_factor is not None:
                 rad = rad * self.frozen_factor_at(atm, i, phys)
+            if self.held_ratio is not None:
+                rad = rad * self.held_ratio[i]
             out.append(rad * self.solar_scale[i])
         return out
 

@@ -11,8 +11,9 @@ as plain functions on in-memory objects:
    aureole, its place on that axis), one candidate camera per projection with the heading that puts
    the computed sun on the detected one, ranked by how well each projection puts it at the detected
    radius; projections the sun cannot tell apart (:func:`projection_decision`) are fitted briefly, the
-   best two race for :data:`RACE_REFRESHES` refreshes (one far behind is dropped there), the rest are
-   converged and the lower loss wins; ``camera=`` (a :class:`~skyfit.camera.FisheyeCamera` or
+   best two race for :data:`RACE_REFRESHES` refreshes on :data:`RACE_SAMPLES` blocks (one far behind is
+   dropped there), the rest are converged and the lower loss wins; the short fits, the race and the two
+   converging fits run side by side on a multi-core CPU (:mod:`skyfit.fit.side_by_side`); ``camera=`` (a :class:`~skyfit.camera.FisheyeCamera` or
    CAMERA.yaml) skips this;
 4. **what is not sky** (:mod:`skyfit.camera.masks`): outside the circle, below the horizon, the
    sun's disc and flare, horizon obstacles, the user's mask; saturated and black pixels are
@@ -1083,8 +1084,8 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
 
     shared: dict = {}  # Bruneton tables at the starting atmosphere, shared by the short fits (camera-independent)
 
-    def run(sc: PhotoScene, exclude=None, start=None, settings=s, target=TARGET_SAMPLES, refreshes=MS_REFRESHES,
-            tables=None, refresh_last=True, settle_first=None):
+    def problem_for(sc: PhotoScene, exclude=None, start=None, settings=s, target=TARGET_SAMPLES):
+        """A fit of ``sc`` set up, nothing fitted: (blocks, prepared data, problem, options, Bruneton model or None)."""
         blocks = block_image(sc, exclude=exclude, target=target)
         obs = block_observation(sc, blocks, blocks.usable, sigma_relative=settings.sigma_relative
                                 if "sigma_relative" in (overrides or {}) else SIGMA_RELATIVE, response=response)
@@ -1102,6 +1103,11 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         if (problem.priors or problem.sun is not None) and getattr(options, "method", None) not in (None, "lbfgs"):
             # the priors and the sun datum live in the objective, not in residuals
             options = dataclasses.replace(options, method="lbfgs")
+        return blocks, prep, problem, options, bruneton
+
+    def run(sc: PhotoScene, exclude=None, start=None, settings=s, target=TARGET_SAMPLES, refreshes=MS_REFRESHES,
+            tables=None, refresh_last=True, settle_first=None):
+        blocks, prep, problem, options, bruneton = problem_for(sc, exclude, start, settings, target)
         res = lagged_fit(problem, options, refreshes, bruneton=bruneton, tables=tables, refresh_last=refresh_last,
                          settle_first=settle_first)
         if res.convergence.get("ms_runaway") and target == TARGET_SAMPLES:
@@ -1110,52 +1116,6 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
                             f"stands (loss {res.loss:.5g} there)")
         shared["builds"] = shared.get("builds", 0) + getattr(problem, "table_builds", 0)
         return blocks, prep, problem, res
-
-    def quick_run(sc: PhotoScene, start=None):
-        """A short fit scored by its loss; the tables at the config's starting atmosphere are built once."""
-        quick = dataclasses.replace(s, max_iter=min(s.max_iter, 25), adam_steps=min(s.adam_steps, 15))
-        out = run(sc, start=start, settings=quick, target=QUICK_SAMPLES, refreshes=1, tables=shared.get("tables"),
-                  refresh_last=False)
-        if "tables" not in shared and getattr(out[2], "bruneton", None) is not None:
-            shared["tables"] = out[2].bruneton[1:]
-        return out[3]
-
-    # the projection by evidence: candidates the sun alone cannot tell apart are fitted and scored by their loss
-    runner_up = None
-    if scene.candidates and choose_projection:
-        best = scene.candidates[0]
-        close = projection_decision(scene.candidates, scene.detected_sun)
-        if len(close) > 1:
-            scores = []
-            for c in close:
-                scores.append(quick_run(with_camera(scene, c.camera)).loss)
-            scene.notes.append("projection chosen by the fit's loss among " + ", ".join(
-                f"{c.projection} {v:.4g}" for c, v in zip(close, scores)))
-            chosen, runner_up = ranked_projections(close, scores)
-            if chosen is not best:
-                scene = with_camera(scene, chosen.camera)
-            scene.candidates = [chosen] + [c for c in scene.candidates if c is not chosen]
-    timings["projection"] = _now() - t0
-
-    # heading from the sky pattern when the sun is not seen: several starting headings, the best loss wins
-    start = None
-    if scene.detected_sun is None and "sun_azimuth_offset" in s.free and not calibrated:
-        tries = []
-        for deg in (0.0, 90.0, 180.0, 270.0):
-            tries.append((quick_run(scene, start={"sun_azimuth_offset": math.radians(deg)}).loss, deg))
-        start = {"sun_azimuth_offset": math.radians(min(tries)[1])}
-    def carried_on(sc: PhotoScene, fit, done: int, settle_first=None):
-        """``fit``, stopped after ``done`` lagged refreshes (a winning strain probe, a race's fit), carried on from
-        where it stands, with the tables it ended on, to :data:`MS_REFRESHES` refreshes in all."""
-        start_c, last = _continuation(fit[2], fit[3].x, s.free)
-        return run(sc, start=start_c, refreshes=MS_REFRESHES - done, tables=last, settle_first=settle_first,
-                   settings=dataclasses.replace(s, adam_steps=0, starts=1))
-
-    def raced_on(sc: PhotoScene, fit):
-        """A race's fit (on :data:`RACE_SAMPLES` blocks, its last fit against tables built before it) carried on over
-        the photo's blocks from where it stands; its first refit rebuilds the tables at its result."""
-        return carried_on(sc, fit, min(RACE_REFRESHES, fit[3].convergence.get("ms_refreshes", RACE_REFRESHES)),
-                          settle_first=False)
 
     def branches(*work):
         """``fn(sc)`` for each ``(sc, fn)`` of ``work``, side by side where the machine allows
@@ -1178,6 +1138,56 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         """``sc`` (the scene under candidate ``cand``) with ``cand`` first among the candidates."""
         sc.candidates = [cand] + [c for c in scene.candidates if c is not cand]
         return sc
+
+    quick = dataclasses.replace(s, max_iter=min(s.max_iter, 25), adam_steps=min(s.adam_steps, 15))
+
+    def quick_losses(*tries) -> list[float]:
+        """The losses of short fits of ``(scene, start)`` pairs, side by side (:func:`branches`); Bruneton's tables at
+        the config's starting atmosphere (camera- and heading-independent) are built once, first, for all of them."""
+        if "tables" not in shared:
+            _, _, problem, _, bruneton = problem_for(tries[0][0], start=tries[0][1], settings=quick, target=QUICK_SAMPLES)
+            if bruneton is not None:
+                freeze_tables(problem, problem.param.initial_vector(problem.param.base.dtype, problem.param.base.device),
+                              bruneton)
+                shared["tables"] = problem.bruneton[1:]
+                shared["builds"] = shared.get("builds", 0) + problem.table_builds
+        return branches(*[(sc, lambda sc, st=st: run(sc, start=st, settings=quick, target=QUICK_SAMPLES, refreshes=1,
+                                                     tables=shared.get("tables"), refresh_last=False)[3].loss)
+                          for sc, st in tries])
+
+    # the projection by evidence: candidates the sun alone cannot tell apart are fitted and scored by their loss
+    runner_up = None
+    if scene.candidates and choose_projection:
+        best = scene.candidates[0]
+        close = projection_decision(scene.candidates, scene.detected_sun)
+        if len(close) > 1:
+            scores = quick_losses(*[(with_camera(scene, c.camera), None) for c in close])
+            scene.notes.append("projection chosen by the fit's loss among " + ", ".join(
+                f"{c.projection} {v:.4g}" for c, v in zip(close, scores)))
+            chosen, runner_up = ranked_projections(close, scores)
+            if chosen is not best:
+                scene = with_camera(scene, chosen.camera)
+            scene.candidates = [chosen] + [c for c in scene.candidates if c is not chosen]
+    timings["projection"] = _now() - t0
+
+    # heading from the sky pattern when the sun is not seen: several starting headings, the best loss wins
+    start = None
+    if scene.detected_sun is None and "sun_azimuth_offset" in s.free and not calibrated:
+        degs = (0.0, 90.0, 180.0, 270.0)
+        losses = quick_losses(*[(scene, {"sun_azimuth_offset": math.radians(deg)}) for deg in degs])
+        start = {"sun_azimuth_offset": math.radians(min(zip(losses, degs))[1])}
+    def carried_on(sc: PhotoScene, fit, done: int, settle_first=None):
+        """``fit``, stopped after ``done`` lagged refreshes (a winning strain probe, a race's fit), carried on from
+        where it stands, with the tables it ended on, to :data:`MS_REFRESHES` refreshes in all."""
+        start_c, last = _continuation(fit[2], fit[3].x, s.free)
+        return run(sc, start=start_c, refreshes=MS_REFRESHES - done, tables=last, settle_first=settle_first,
+                   settings=dataclasses.replace(s, adam_steps=0, starts=1))
+
+    def raced_on(sc: PhotoScene, fit):
+        """A race's fit (on :data:`RACE_SAMPLES` blocks, its last fit against tables built before it) carried on over
+        the photo's blocks from where it stands; its first refit rebuilds the tables at its result."""
+        return carried_on(sc, fit, min(RACE_REFRESHES, fit[3].convergence.get("ms_refreshes", RACE_REFRESHES)),
+                          settle_first=False)
 
     def probed(sc: PhotoScene, fit):
         """``fit`` or, where its camera nuisances strained their priors (:data:`PRIOR_STRAIN_LEVEL`), the refit from

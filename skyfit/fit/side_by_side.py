@@ -24,6 +24,7 @@ import multiprocessing
 import pickle
 import sys
 import threading
+import warnings
 from typing import Any, Callable, Sequence
 
 import torch
@@ -36,6 +37,10 @@ BENIGN_THREADS = ("tqdm_monitor",)
 takes tqdm's lock for microseconds every 10 s, and a child draws no bar (:func:`in_child`), so never takes it."""
 
 _IN_CHILD = False
+
+
+class BranchLostWarning(RuntimeWarning):
+    """A branch's child died or could not send its result back; the branch was run again in this process."""
 
 
 def in_child() -> bool:
@@ -105,5 +110,9 @@ def side_by_side(calls: Sequence[Callable[[], Any]], device="cpu") -> list:
     for call, (kind, value) in zip(calls[1:], results):
         if kind == "error":
             raise value
-        out.append(call() if kind == "lost" else value)
+        if kind == "lost":
+            warnings.warn(f"a side-by-side branch was lost in its child ({value}); it is run again here",
+                          BranchLostWarning, stacklevel=2)
+            value = call()
+        out.append(value)
     return out
