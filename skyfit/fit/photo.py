@@ -13,8 +13,8 @@ as plain functions on in-memory objects:
    radius; projections the sun cannot tell apart (:func:`projection_decision`) are fitted briefly, the
    best two race for :data:`RACE_REFRESHES` refreshes on :data:`RACE_SAMPLES` blocks (one far behind is
    dropped there), the rest are converged and the lower loss wins; the short fits, the race and the two
-   converging fits run side by side on a multi-core CPU (:mod:`skyfit.fit.side_by_side`); ``camera=`` (a :class:`~skyfit.camera.FisheyeCamera` or
-   CAMERA.yaml) skips this;
+   converging fits run side by side on a multi-core CPU (:mod:`skyfit.fit.side_by_side`); ``camera=``
+   (a :class:`~skyfit.camera.FisheyeCamera` or CAMERA.yaml) skips this;
 4. **what is not sky** (:mod:`skyfit.camera.masks`): outside the circle, below the horizon, the
    sun's disc and flare, horizon obstacles, the user's mask; saturated and black pixels are
    *censored* (bounds), not dropped;
