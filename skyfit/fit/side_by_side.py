@@ -1,21 +1,22 @@
 """Independent branches of one fit run side by side on a multi-core CPU, each in its own process.
 
-A photo fit decides between two projections by fitting both (:func:`skyfit.fit.photo.fit_scene`'s race). The two
-fits share nothing until they are compared, so on a machine with two cores they can run at once. Why processes,
-forked here, and not threads or a library: a photo fit's objective is about 1 800 small tensor operations on
-1 000 blocks, and Python holds the GIL between them. On held-out synthetic photo 14 (2 cores, one torch thread per
-branch) the race took 66 s one fit after the other, 53 s in two threads and 35 s in two forked processes
-(docs/photos.md, "The race side by side"). ``concurrent.futures`` and ``multiprocessing.Pool`` pickle the function
-and start helper threads before they fork; a fit's branches are closures over the scene and its tables, which a
-fork inherits as they are, so the one child per extra branch is started by hand (``multiprocessing``'s fork
-context) and sends its result back pickled. Many photos on many machines go through ``skyfit batch`` on Dask;
-this only splits the two branches of one photo's decision.
+A photo fit decides between two projections by fitting both (:func:`skyfit.fit.photo.fit_scene`'s short fits and
+race). The fits share nothing until they are compared, so on a machine with two cores they can run at once. Why
+processes, forked here, and not threads or a library: a photo fit's objective with its gradient is several thousand
+small tensor operations on 1 000 blocks, and Python holds the GIL between them. On held-out synthetic photo 14
+(2 cores, one torch thread per branch) the race took 66 s one fit after the other, 53 s in two threads and 35 s in
+two forked processes (docs/photos.md, "The race side by side"). ``concurrent.futures`` and ``multiprocessing.Pool``
+pickle the function and start helper threads before they fork; a fit's branches are closures over the scene and its
+tables, which a fork inherits as they are, so the one child per extra branch is started by hand
+(``multiprocessing``'s fork context) and sends its result back pickled. Many photos on many machines go through
+``skyfit batch`` on Dask; this only splits the independent branches inside one photo's fit.
 
 It falls back to one branch after the other, in this process, wherever a fork is not safe or not useful: not on
 Linux (macOS's system libraries are not fork-safe), a device other than the CPU (CUDA cannot be forked), a single
 torch thread (nothing to share out), a daemonic process (Dask's and multiprocessing's workers may not have
-children), other Python threads running (a fork copies their locks, held or not; :data:`BENIGN_THREADS` aside), or :data:`ENABLED` off. A branch
-whose child dies without a result is run again here.
+children), other Python threads running (a fork copies their locks, held or not; :data:`BENIGN_THREADS` aside),
+or :data:`ENABLED` off. A branch whose child dies without a result is run again here, with a
+:class:`BranchLostWarning`.
 """
 
 from __future__ import annotations
