@@ -103,7 +103,8 @@ def side_by_side(calls: Sequence[Callable[[], Any]], device="cpu") -> list:
         for p, recv in children:
             try:
                 results.append(pickle.loads(recv.recv_bytes()))
-            except EOFError:  # the child died without a word
+            except EOFError:  # the child died without a word: its exit code once it is gone
+                p.join()
                 results.append(("lost", f"exit code {p.exitcode}"))
             recv.close()
             p.join()
