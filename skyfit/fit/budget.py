@@ -217,15 +217,17 @@ def shares_factor(problem: FitProblem, reference: FitProblem) -> bool:
     return problem.frozen_factor is not None and reference.frozen_factor is not None
 
 
-def reference_factor(problem: FitProblem, reference: FitProblem, x: Tensor) -> list[Tensor]:
+def reference_factor(problem: FitProblem, reference: FitProblem, x: Tensor, on_factor: bool | None = None) -> list[Tensor]:
     """Per observation, the spectra of the reference over the fit's at x, (N_i, W) [1]: the fit's renderer times it
-    is the reference at x. Where the reference has its own multiple scattering, the fit's frozen factor is left out of
-    the fit's spectra (the ratio replaces it, :func:`held_reference`); where it keeps the fit's factor
-    (:func:`shares_factor`), both spectra carry it and the ratio is that of the single scattering alone."""
+    is the reference at x. ``on_factor`` False: the fit's frozen factor is left out of the fit's spectra, and the ratio
+    is to replace it; True: both spectra carry it (a reference that keeps the fit's factor), and the ratio goes on top
+    of it. Default: :func:`shares_factor`, as :func:`held_reference` holds it."""
+    if on_factor is None:
+        on_factor = shares_factor(problem, reference)
     with torch.no_grad():
         phys = problem.param.to_physical(x)
         saved = problem.frozen_factor
-        if not shares_factor(problem, reference):
+        if not on_factor:
             problem.frozen_factor = None
         try:
             s_fit = problem.spectra(phys)
@@ -853,7 +855,9 @@ def phase_expansion(problem: FitProblem, x: Tensor, term: NumericalTerm, *, refe
     ep.frozen_tables = None
     ep.frozen_slope = ep.frozen_slope_g = None
     x0 = wide.initial_vector(x.dtype, x.device)
-    ep.frozen_factor = reference_factor(ep, reference_problem(ep, reference), x0)
+    # the ratio to the bare single scattering in the factor's place, held in the aerosol (not held_reference's
+    # followed factor: its slopes in g are the one-term g's, which the two-term refit does not have)
+    ep.frozen_factor = reference_factor(ep, reference_problem(ep, reference), x0, on_factor=False)
     opt = options or FitOptions(starts=1, adam_steps=0, max_iter=100)
     res = fit(ep, opt, x0=x0)
     w = wide.physical_dict(res.x)

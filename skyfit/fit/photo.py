@@ -1249,9 +1249,11 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         # probe and lens (held-out case 4, a Kannala-Brandt lens: equidistant lost to equisolid at 0.295 against 0.278
         # without its lens and won at 0.169 with it), and the lower loss keeps its projection
         sc_r = with_camera(scene, runner_up.camera)
-        race = dict(start=start, tables=shared.get("tables"), settle_first=False, refreshes=RACE_REFRESHES,
-                    target=RACE_SAMPLES, refresh_last=False)
-        fit, fit_r = branches((scene, lambda sc: run(sc, **race)), (sc_r, lambda sc: run(sc, **race)))
+        def race(sc):
+            return run(sc, start=start, tables=shared.get("tables"), settle_first=False, refreshes=RACE_REFRESHES,
+                       target=RACE_SAMPLES, refresh_last=False)
+
+        fit, fit_r = branches((scene, race), (sc_r, race))
         timings["race"] = _now() - t1
         la, lr = fit[3].loss, fit_r[3].loss
         t1 = _now()
@@ -1263,9 +1265,10 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
                 scene, fit = promoted(sc_r, runner_up), fit_r
             fit, fit_r = probed(scene, raced_on(scene, fit)), None
         else:
-            (fit, lens), (fit_r, lens_r) = branches(
-                (scene, lambda sc, f=fit: with_lens(sc, probed(sc, raced_on(sc, f)))),
-                (sc_r, lambda sc, f=fit_r: with_lens(sc, probed(sc, raced_on(sc, f)))))
+            def converged(f):
+                return lambda sc: with_lens(sc, probed(sc, raced_on(sc, f)))
+
+            (fit, lens), (fit_r, lens_r) = branches((scene, converged(fit)), (sc_r, converged(fit_r)))
             better = fit_r[3].loss < fit[3].loss
             scene.notes.append(f"the runner-up projection {runner_up.projection} fitted from the same start: loss "
                                f"{fit_r[3].loss:.5g} against {fit[3].loss:.5g} for {scene.camera.projection} "
