@@ -70,6 +70,11 @@ def test_newton_shift_matches_a_brute_force_refit_with_the_reference(biased_fit)
     s_x = torch.tensor([lap["sigma_unconstrained"][n] for n in FREE], dtype=torch.float64)
     rs = refit_shift(prob, res.x, ref, res.x, s_x, iterations=3, options=TIGHT, tol=1e-3)
     torch.testing.assert_close(rs["x"], brute, rtol=0, atol=0.01 * float(s_x.min()))
+    # each refit by Newton steps with the fit's Laplace covariance (chord_refit): the same optimum
+    cov = torch.as_tensor(lap["covariance_unconstrained"], dtype=torch.float64)
+    rc = refit_shift(prob, res.x, ref, res.x, s_x, iterations=3, options=TIGHT, tol=1e-3, cov_x=cov)
+    assert rc["solvers"] == ["newton"] * len(rc["steps"])
+    torch.testing.assert_close(rc["x"], brute, rtol=0, atol=0.01 * float(s_x.min()))
     # the numerical sigma is the size of the shift
     for n in FREE:
         assert b["budget"]["sigma_numerical"][n] == pytest.approx(abs(b["budget"]["numerical_shift"][n]), rel=1e-3)
@@ -181,6 +186,26 @@ def test_reference_model_adds_bruneton_orders_to_converged_single_scattering():
 def test_demo_chain_steps_follow_the_tau_rule(tau, done, expected):
     """1.2 x 50 tau steps, at least one more than done, at most the cap."""
     assert chain_steps(tau, done) == expected
+
+
+def test_a_chord_refit_that_cannot_descend_hands_over_to_lbfgs(biased_fit):
+    """A wrong inverse Hessian (-1 x the Laplace covariance: every step climbs) makes chord_refit give up (None), and
+    refit_shift refits by L-BFGS to the same optimum as with the right one."""
+    from skyfit.fit.budget import chord_refit
+
+    prob, res, lap, _ = biased_fit
+    ref = reference_problem(prob, _fine())
+    cov = torch.as_tensor(lap["covariance_unconstrained"], dtype=torch.float64)
+    s_x = torch.tensor([lap["sigma_unconstrained"][n] for n in FREE], dtype=torch.float64)
+    start = res.x.detach() + 3 * s_x.to(res.x.dtype)  # off the optimum: a step that matters
+    assert chord_refit(prob, start, -cov, s_x) is None
+    good = chord_refit(prob, start, cov, s_x)
+    lb = fit(prob, TIGHT, x0=start).x
+    torch.testing.assert_close(good, lb, rtol=0, atol=0.01 * float(s_x.min()))
+    rs = refit_shift(prob, res.x, ref, res.x, s_x, iterations=1, options=TIGHT, cov_x=-cov)
+    assert rs["solvers"] == ["lbfgs"]
+    rn = refit_shift(prob, res.x, ref, res.x, s_x, iterations=1, options=TIGHT, cov_x=cov)
+    torch.testing.assert_close(rs["x"], rn["x"], rtol=0, atol=0.01 * float(s_x.min()))
 
 
 def test_refits_run_only_where_the_newton_step_is_not_linear(biased_fit, monkeypatch):
