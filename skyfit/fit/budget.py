@@ -78,7 +78,7 @@ from ..transmittance import make_integrator
 from .laplace import (bound_slots, covariance_summary, derived_functions, display_names, laplace_summary,
                       physical_slot_values, transform_jacobian)
 from .model import FitProblem, SkyModel
-from .optimise import FitOptions, fit
+from .optimise import FitOptions, chord, fit
 from .parameters import (MIE_G2_DEFAULT, MIE_HG_WEIGHT_DEFAULT, NUISANCE, PARAMETERS, TWO_TERM_HG, FitError, Parameterisation,
                          inside_bounds)
 
@@ -254,61 +254,15 @@ def held_reference(problem: FitProblem, reference: FitProblem, factor: list[Tens
     return lagged
 
 
-CHORD_TOL = 0.005
-"""A chord refit (:func:`chord_refit`) has converged when its step moves every parameter by less than this many noise
-sigmas: a twentieth of :func:`refit_shift`'s own tolerance between refits (0.1). [1]"""
-
-CHORD_ITERATIONS = 12
-"""Newton steps a chord refit may take before it hands over to L-BFGS. [1]"""
-
-
-def chord_refit(problem: FitProblem, x0: Tensor, cov_x: Tensor, sigma_x: Tensor, tol: float = CHORD_TOL,
-                iterations: int = CHORD_ITERATIONS) -> Tensor | None:
-    """Minimise n_elements x ``problem``'s objective from x0 by Newton steps with a fixed inverse Hessian ``cov_x``
-    (P, P) (the fit's Laplace covariance; the chord method, Ortega & Rheinboldt 1970, sec. 7.1), halving a step that
-    does not lower the objective (Armijo, 1e-4). A lagged refit's problem (:func:`held_reference`) is the fit's own
-    with a factor near 1 held, so its Hessian near x0 is the fit's and a step costs one gradient; L-BFGS from no
-    curvature took 40-60 of them a refit (synthetic held-out case 4: 154 evaluations, 8.4 s of an 11.3 s report;
-    docs/photos.md, "The report's refits by Newton steps").
-
-    Returns the point where a full step moves every parameter by less than ``tol`` noise sigmas ``sigma_x`` (P,),
-    or None where it does not get there in ``iterations`` steps or a step halved six times still does not descend
-    (the caller refits with L-BFGS).
-    """
-    n = problem.n_elements
-
-    def value_grad(v: Tensor) -> tuple[float, Tensor]:
-        v = v.detach().clone().requires_grad_(True)
-        try:
-            f = problem.objective(v) * n
-        except ValueError:  # outside the renderer's domain
-            return math.inf, torch.zeros_like(v)
-        if not torch.isfinite(f):
-            return math.inf, torch.zeros_like(v)
-        (g,) = torch.autograd.grad(f, v)
-        return float(f.detach()), g.detach()
-
-    x = x0.detach().clone()
-    f, g = value_grad(x)
-    if not (math.isfinite(f) and bool(torch.isfinite(g).all())):
-        return None
-    cov = cov_x.to(device=g.device, dtype=g.dtype)
-    scale = sigma_x.to(device=g.device, dtype=torch.float64).clamp_min(1e-300)
-    for _ in range(iterations):
-        step = -(cov @ g)
-        slope = float(g @ step)
-        if float((step.abs().to(torch.float64) / scale).max()) < tol:
-            return x
-        t = 1.0
-        while True:
-            fn, gn = value_grad(x + t * step)
-            if fn <= f + 1e-4 * t * slope and bool(torch.isfinite(gn).all()):
-                break
-            t *= 0.5
-            if t < 1.0 / 64:
-                return None
-        x, f, g = x + t * step, fn, gn
-    return None
+def chord_refit(problem: FitProblem, x0: Tensor, cov_x: Tensor, sigma_x: Tensor) -> Tensor | None:
+    """A lagged refit (:func:`held_reference`) by Newton steps with the fit's inverse Hessian ``cov_x`` held
+    (:func:`skyfit.fit.optimise.chord`): its problem is the fit's own with a factor near 1 held, so its Hessian near
+    x0 is the fit's, and a step costs one gradient; L-BFGS from no curvature took 40-60 of them a refit (synthetic
+    held-out case 4: 154 evaluations, 8.8 s of an 11.3 s report, against 1.4 s by Newton steps, the two 0.001 noise
+    sigma apart; docs/photos.md, "Newton steps where the curvature is known"). The optimum, or None where the steps
+    do not get there (the caller refits with L-BFGS)."""
+    res = chord(problem, x0, cov_x, sigma_x)
+    return None if res is None else res.x
 
 
 def refit_shift(problem: FitProblem, x: Tensor, reference: FitProblem, x_start: Tensor, sigma_x: Tensor,
