@@ -78,7 +78,7 @@ from ..transmittance import make_integrator
 from .laplace import (bound_slots, covariance_summary, derived_functions, display_names, laplace_summary,
                       physical_slot_values, transform_jacobian)
 from .model import FitProblem, SkyModel
-from .optimise import FitOptions, chord, fit
+from .optimise import FitOptions, curved, fit
 from .parameters import (MIE_G2_DEFAULT, MIE_HG_WEIGHT_DEFAULT, NUISANCE, PARAMETERS, TWO_TERM_HG, FitError, Parameterisation,
                          inside_bounds)
 
@@ -254,17 +254,6 @@ def held_reference(problem: FitProblem, reference: FitProblem, factor: list[Tens
     return lagged
 
 
-def chord_refit(problem: FitProblem, x0: Tensor, cov_x: Tensor, sigma_x: Tensor) -> Tensor | None:
-    """A lagged refit (:func:`held_reference`) by Newton steps with the fit's inverse Hessian ``cov_x`` held
-    (:func:`skyfit.fit.optimise.chord`): its problem is the fit's own with a factor near 1 held, so its Hessian near
-    x0 is the fit's, and a step costs one gradient; L-BFGS from no curvature took 40-60 of them a refit (synthetic
-    held-out case 4: 154 evaluations, 8.8 s of an 11.3 s report, against 1.4 s by Newton steps, the two 0.001 noise
-    sigma apart; docs/photos.md, "Newton steps where the curvature is known"). The optimum, or None where the steps
-    do not get there (the caller refits with L-BFGS)."""
-    res = chord(problem, x0, cov_x, sigma_x)
-    return None if res is None else res.x
-
-
 def refit_shift(problem: FitProblem, x: Tensor, reference: FitProblem, x_start: Tensor, sigma_x: Tensor,
                 iterations: int = 2, options: FitOptions | None = None, tol: float = 0.1,
                 cov_x: Tensor | None = None) -> dict:
@@ -274,14 +263,17 @@ def refit_shift(problem: FitProblem, x: Tensor, reference: FitProblem, x_start: 
     fixed and refits m_fit(x) c_k from x_k (:func:`held_reference`; as skyfit.fit.photo's lagged
     fit); at the fixed point the gradient of the reference's likelihood is zero up to the change of
     c with x. Stops after ``iterations`` or when a step moves every parameter by less than ``tol``
-    noise sigmas ``sigma_x`` (P,). With ``cov_x`` (the fit's inverse Hessian) each refit is first tried by
-    Newton steps (:func:`chord_refit`), by L-BFGS (``options``) where those do not converge.
+    noise sigmas ``sigma_x`` (P,). With ``cov_x`` (the fit's inverse Hessian) each refit starts from that curvature
+    (:func:`skyfit.fit.optimise.curved`): its problem is the fit's own with a factor near 1 held, so its Hessian is
+    about the fit's, and L-BFGS from no curvature took 40-60 gradients a refit (synthetic held-out case 4: 154
+    evaluations, 8.8 s of an 11.3 s report; docs/photos.md, "Fits that start from a known curvature"); L-BFGS
+    (``options``) where that does not converge.
 
     Returns:
         ``x`` (the last iterate (P,)), ``factor`` (the last c_k), ``steps`` (max |step| / sigma_x of each),
         ``tail`` (P,): what the iteration has still to go when it stopped unconverged, the last step
         times r / (1 - r) with r the ratio of the last two steps (at most 0.9; a geometric series),
-        zero when it converged, None after a single unconverged refit; ``solvers`` ("newton" or "lbfgs" per refit).
+        zero when it converged, None after a single unconverged refit; ``solvers`` ("curved" or "lbfgs" per refit).
     """
     opt = options or FitOptions(starts=1, adam_steps=0, max_iter=100)
     xk, steps, factor, solvers = x_start.detach().to(x.dtype), [], None, []
@@ -289,12 +281,9 @@ def refit_shift(problem: FitProblem, x: Tensor, reference: FitProblem, x_start: 
     for _ in range(iterations):
         factor = reference_factor(problem, reference, xk)
         held = held_reference(problem, reference, factor)
-        xn = chord_refit(held, xk, cov_x, sigma_x) if cov_x is not None else None
-        if xn is None:
-            xn = fit(held, opt, x0=xk).x.detach()
-            solvers.append("lbfgs")
-        else:
-            solvers.append("newton")
+        res = curved(held, xk, cov_x) if cov_x is not None else None
+        solvers.append("lbfgs" if res is None else "curved")
+        xn = (res or fit(held, opt, x0=xk)).x.detach()
         step = float(((xn - xk).abs().to(torch.float64) / sigma_x.clamp_min(1e-300)).max())
         steps.append(step)
         prev, last = last, (xn - xk).to(torch.float64)

@@ -441,77 +441,74 @@ def _run_start(problem: FitProblem, x0: Tensor, opt: FitOptions, bar, label: str
     }
 
 
-# -- Newton steps with a known curvature ---------------------------------------------------
-CHORD_TOL = 0.005
-""":func:`chord` has converged when a full step moves every parameter by less than this many sigmas (the fit's noise
-sigmas: the square roots of the inverse Hessian's diagonal), a twentieth of the lagged refits' own tolerance between
-refits (skyfit.fit.budget.refit_shift, 0.1). [1]"""
+# -- a known curvature -----------------------------------------------------------------------
+CURVED_TOL = 0.005
+""":func:`curved` has converged when the gradient, whitened by the given curvature, is under this (the Newton step's
+length in the fit's noise sigmas, Mahalanobis): a twentieth of the lagged refits' own tolerance between refits
+(skyfit.fit.budget.refit_shift, 0.1). [1]"""
 
-CHORD_ITERATIONS = 12
-"""Newton steps :func:`chord` may take before it gives up (the caller falls back to L-BFGS). [1]"""
+CURVED_ITERATIONS = 30
+"""BFGS iterations :func:`curved` may take before it gives up (the caller falls back to L-BFGS). [1]"""
 
 
-def chord(problem: FitProblem, x0: Tensor, cov_x: Tensor, sigma_x: Tensor | None = None, tol: float = CHORD_TOL,
-          iterations: int = CHORD_ITERATIONS) -> OptimiseResult | None:
-    """Minimise ``problem``'s objective from x0 by Newton steps with a fixed inverse Hessian (the chord method; Ortega &
-    Rheinboldt 1970, Iterative Solution of Nonlinear Equations, sec. 7.1), halving a step that does not lower the
-    objective (Armijo, 1e-4), for a problem whose curvature is already known: one that changed little since its
-    Hessian was taken (a lagged fit's next refresh, a refit with a factor near 1 held). A step costs one gradient,
-    where L-BFGS from no curvature spends tens of them rebuilding what the matrix holds. Hand-written: the matrix is
-    the point (torch's and scipy's quasi-Newton minimisers take none; scipy's Newton-CG wants its own Hessian).
+def curved(problem: FitProblem, x0: Tensor, cov_x: Tensor, tol: float = CURVED_TOL,
+           iterations: int = CURVED_ITERATIONS) -> OptimiseResult | None:
+    """Minimise ``problem``'s objective from x0 where its curvature is already known: a problem that changed little
+    since its Hessian was taken (a lagged fit's next refresh; a refit with a factor near 1 held). scipy's BFGS
+    (Nocedal & Wright 2006, Numerical Optimization, alg. 6.1, Wolfe line search) in the coordinates z that whiten the
+    given inverse Hessian, x = x0 + L z with L L^T = cov_x, where the Hessian of n_elements x the objective starts as
+    the identity: its first step is the Newton step, and BFGS corrects the curvature as the problem moved since. A step
+    costs about one gradient, where L-BFGS from no curvature spends tens of them rebuilding what the matrix holds.
 
     Args:
         problem: the objective (mean loss per element); x0: the start (P,).
-        cov_x: the inverse Hessian of n_elements x the objective, (P, P) (:func:`skyfit.fit.laplace.hessian_nll`).
-        sigma_x: the scale of a step, (P,) (default: sqrt of cov_x's diagonal).
+        cov_x: the inverse Hessian of n_elements x the objective near x0, (P, P), positive definite
+            (:func:`skyfit.fit.laplace.hessian_nll`).
 
     Returns:
-        :class:`OptimiseResult` (convergence ``method`` "newton") at the point where a full step moves every
-        parameter by less than ``tol`` sigma_x; None where it does not get there in ``iterations`` steps, a step halved
-        six times still does not descend, or the objective leaves its domain.
+        :class:`OptimiseResult` (convergence ``method`` "bfgs (known curvature)") where the whitened gradient (the
+        Newton step in noise sigmas) is under ``tol``; None where BFGS does not get there in ``iterations``, its line
+        search fails, or the objective leaves its domain.
     """
+    import numpy as np
+    import scipy.optimize
+
     t0 = time.perf_counter()
     n = max(problem.n_elements, 1)
-    cov = cov_x.to(device=x0.device, dtype=x0.dtype)
-    scale = (torch.diagonal(cov_x).clamp_min(0).sqrt() if sigma_x is None else sigma_x).to(
-        device=x0.device, dtype=torch.float64).clamp_min(1e-300)
-    history: list[float] = []
-
-    def value_grad(v: Tensor) -> tuple[float, Tensor]:
-        try:
-            f, g = _value_and_grad(problem, v)
-        except ValueError:  # outside the renderer's domain
-            return math.inf, torch.zeros_like(v)
-        history.append(f)
-        return (f, g) if math.isfinite(f) and bool(torch.isfinite(g).all()) else (math.inf, torch.zeros_like(v))
-
-    x = x0.detach().clone()
-    f, g = value_grad(x)
-    if not math.isfinite(f):
+    L, info = torch.linalg.cholesky_ex(cov_x.to(device=x0.device, dtype=torch.float64))
+    if int(info) != 0:
         return None
-    for k in range(iterations + 1):
-        step = -(cov @ g) * n  # the objective is the mean: its inverse Hessian is n cov_x
-        if float((step.abs().to(torch.float64) / scale).max()) < tol:
-            conv = {"converged": True, "reason": f"step under {tol:g} sigma", "iterations": k, "adam_steps": 0,
-                    "method": "newton", "evaluations": len(history), "grad_norm": float(g.abs().max()),
-                    "rel_change": math.nan, "seconds": time.perf_counter() - t0, "warnings": []}
-            conv.update({"start": 0, "n_starts": 1, "seconds_total": conv["seconds"], "evaluations_total": len(history)})
-            p = problem.param
-            return OptimiseResult(x=x, loss=f, parameters=p.physical_dict(x), free=list(p.free), convergence=conv,
-                                  starts=[{"initial": p.free_dict(x0), "final": p.free_dict(x), "loss": f,
-                                           "convergence": conv}], history=history)
-        if k == iterations:
-            return None
-        slope, t = float(g @ step), 1.0
-        while True:
-            fn, gn = value_grad(x + t * step)
-            if fn <= f + 1e-4 * t * slope:
-                break
-            t *= 0.5
-            if t < 1.0 / 64:
-                return None
-        x, f, g = (x + t * step).detach(), fn, gn
-    return None
+    base = x0.detach().to(torch.float64)
+    history: list[float] = []
+    failed: list[str] = []
+
+    def to_x(z) -> Tensor:
+        return (base + L @ torch.as_tensor(z, dtype=torch.float64, device=base.device)).to(x0.dtype)
+
+    def fun(z):
+        try:
+            f, g = _value_and_grad(problem, to_x(z))
+        except ValueError as e:  # outside the renderer's domain
+            failed.append(str(e))
+            return math.inf, np.zeros_like(z)
+        history.append(f)
+        return f * n, (L.T @ g.to(torch.float64)).cpu().numpy() * n
+
+    with np.errstate(all="ignore"):
+        out = scipy.optimize.minimize(fun, np.zeros(x0.numel()), jac=True, method="BFGS",
+                                      options={"gtol": tol, "norm": 2, "maxiter": iterations})
+    if not out.success or failed or not math.isfinite(float(out.fun)):
+        return None
+    x = to_x(out.x).detach()
+    f = float(out.fun) / n
+    conv = {"converged": True, "reason": f"whitened gradient under {tol:g}", "iterations": int(out.nit), "adam_steps": 0,
+            "method": "bfgs (known curvature)", "evaluations": len(history), "grad_norm": math.nan, "rel_change": math.nan,
+            "seconds": time.perf_counter() - t0, "warnings": []}
+    conv.update({"start": 0, "n_starts": 1, "seconds_total": conv["seconds"], "evaluations_total": len(history)})
+    p = problem.param
+    return OptimiseResult(x=x, loss=f, parameters=p.physical_dict(x), free=list(p.free), convergence=conv,
+                          starts=[{"initial": p.free_dict(x0), "final": p.free_dict(x), "loss": f, "convergence": conv}],
+                          history=history)
 
 
 def fit(problem: FitProblem, options: FitOptions | None = None, x0: Tensor | None = None) -> OptimiseResult:

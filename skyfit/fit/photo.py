@@ -57,6 +57,7 @@ from ..camera.sun import parse_location, parse_time, sun_position
 from ..io.photo import LinearPhoto, block_view, exif_location, exif_stamps, read_photo, reduced_photo
 from .data import Observation
 from .model import FitProblem, aerosol_log_depth, applied_lens, lens_directions, tilt_directions
+from .optimise import curved
 from .optimise import fit as optimise
 from .parameters import CAMERA_RESPONSE, NUISANCE
 from .problem import fit_settings, make_model, prepare
@@ -1795,8 +1796,23 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
         freeze_tables(problem, x, bruneton)
     _start_at(problem, problem.profile_exposure(x))
     res, k, change, best, rebuilt, exhausted = None, 0, math.inf, None, None, False
+    curvature, curved_fits = None, 0
+    # a fit carried on from another's result with its tables (a race's fit over all the blocks, a second pass, a lens
+    # refit) starts near its optimum, as every refresh after the first does
+    carried = tables is not None and options.adam_steps == 0 and options.starts == 1
     for k in range(max(1, refreshes)):
-        res = optimise(problem, options)
+        res = None
+        if (k > 0 or carried) and LAGGED_CURVED and curvature is not False:
+            # a fit that starts near its optimum (a refresh's, the factor rebuilt at the last result): BFGS from the
+            # Hessian taken once at the first such start (:func:`skyfit.fit.optimise.curved`), L-BFGS where it does
+            # not converge
+            if curvature is None:
+                curvature = _curvature(problem, x)
+            if curvature is not False:
+                res = curved(problem, x, curvature)
+                curved_fits += res is not None
+        if res is None:
+            res = optimise(problem, options)
         if best is None or res.loss < best[0]:
             best = (res.loss, res, {a: getattr(problem, a, None) for a in _FROZEN_STATE})
         elif res.loss > MS_RUNAWAY * (rebuilt or best)[0]:
@@ -1848,10 +1864,36 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
     else:
         exhausted = True
     res.convergence["ms_refreshes"] = k + 1
+    res.convergence["ms_curved_fits"] = curved_fits  # refreshes fitted from a known curvature (the rest by L-BFGS)
     res.convergence["ms_exhausted"] = exhausted  # the refreshes ran out (no stop by settling or a runaway)
     res.convergence["ms_factor_change"] = change
     res.convergence["ms_table_builds"] = getattr(problem, "table_builds", 0)
     return res
+
+
+LAGGED_CURVED = True
+"""A lagged fit's refreshes after its first, and every fit of one carried on from another's result with its tables, are
+fitted from the Hessian taken at the first such fit's start (:func:`skyfit.fit.optimise.curved`), where that converges;
+L-BFGS from no curvature took 50-100 evaluations a fit (docs/photos.md, "Fits that start from a known curvature").
+False: every fit by L-BFGS."""
+
+
+def _curvature(problem: FitProblem, x: torch.Tensor) -> torch.Tensor | bool:
+    """The inverse Hessian of n_elements x the objective at x (P, P); for a robust loss the Gauss-Newton one in IRLS
+    weights (:func:`skyfit.fit.budget.robust_hessian`): the exact one of a redescending rho is not positive definite
+    where outliers sit off the optimum, as at a refresh's start (seed-0 synthetic case 2, min eigenvalue -3.5e4).
+    False where it is not positive definite."""
+    from .budget import prediction_jacobian, robust_hessian
+    from .laplace import covariance_from_hessian, hessian_nll
+
+    try:
+        if problem.loss.rho == "squared":
+            cov, pd, _ = covariance_from_hessian(hessian_nll(problem, x))
+        else:
+            cov, pd, _ = covariance_from_hessian(robust_hessian(problem, x, prediction_jacobian(problem, x)))
+    except (ValueError, RuntimeError):  # a Hessian that is not finite (FitError is a ValueError)
+        return False
+    return cov.to(dtype=x.dtype) if pd else False
 
 
 MS_RUNAWAY = 1.5
