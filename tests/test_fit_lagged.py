@@ -495,3 +495,35 @@ def test_the_budgets_refits_of_a_photo_fit_keep_its_factor_following_the_aerosol
     old = copy.copy(problem)
     old.frozen_factor, old.frozen_slope, old.frozen_slope_g = before, None, None
     assert off(old) > 0.3
+
+
+def test_refreshes_from_a_known_curvature_end_where_lbfgs_does(sky4, monkeypatch):
+    """A photo's lagged fit by L-BFGS: its refreshes after the first fitted from the Hessian taken at the second fit's
+    start (LAGGED_CURVED, optimise.curved) end on the values every refresh by L-BFGS ends on, to 0.005 of a noise
+    sigma and no higher, in fewer objective evaluations; a carried-on fit (tables handed on) starts so too."""
+    from skyfit.fit import photo as fp
+    from skyfit.fit.laplace import laplace_summary
+
+    free = ["mie_aod_550", "mie_angstrom_alpha", "exposure"]
+    options = fit_settings({"starts": 1, "adam_steps": 0, "optimiser": "lbfgs"}).options(False)
+    out = {}
+    for on in (False, True):
+        monkeypatch.setattr(fp, "LAGGED_CURVED", on)
+        problem = fp.PhotoProblem.of(_problem(sky4, free), {})
+        problem.param.set_value("mie_aod_550", 0.12)
+        res = fp.lagged_fit(problem, options, bruneton=problem.model.factor_model())
+        start, last = fp._continuation(problem, res.x, free)
+        carried = fp.PhotoProblem.of(_problem(sky4, free), {})
+        for n, v in {**start, "mie_aod_550": 1.03 * start["mie_aod_550"]}.items():
+            carried.param.set_value(n, v)
+        res_c = fp.lagged_fit(carried, options, refreshes=1, bruneton=carried.model.factor_model(), tables=last,
+                              refresh_last=False)
+        out[on] = (problem, res, carried, res_c)
+    (p0, r0, c0, rc0), (p1, r1, c1, rc1) = out[False], out[True]
+    assert r1.convergence["ms_refreshes"] > 1 and r1.convergence["ms_curved_fits"] == r1.convergence["ms_refreshes"] - 1
+    assert r0.convergence["ms_curved_fits"] == 0 and rc1.convergence["ms_curved_fits"] == 1
+    s_x = torch.tensor(list(laplace_summary(p0, r0.x)["sigma_unconstrained"].values()), dtype=torch.float64)
+    for a, b in ((r0, r1), (rc0, rc1)):  # within curved's own tolerance (CURVED_TOL), and no higher
+        print(f"L-BFGS {a.loss:.10g}, curved {b.loss:.10g}, apart {float(((b.x - a.x).abs() / s_x).max()):.2g} sigma")
+        assert float(((b.x - a.x).abs() / s_x).max()) < 5e-3 and b.loss <= a.loss * (1 + 1e-9)
+    assert p1.n_evaluations + c1.n_evaluations < p0.n_evaluations + c0.n_evaluations

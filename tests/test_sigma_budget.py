@@ -70,10 +70,10 @@ def test_newton_shift_matches_a_brute_force_refit_with_the_reference(biased_fit)
     s_x = torch.tensor([lap["sigma_unconstrained"][n] for n in FREE], dtype=torch.float64)
     rs = refit_shift(prob, res.x, ref, res.x, s_x, iterations=3, options=TIGHT, tol=1e-3)
     torch.testing.assert_close(rs["x"], brute, rtol=0, atol=0.01 * float(s_x.min()))
-    # each refit by Newton steps with the fit's Laplace covariance (chord_refit): the same optimum
+    # each refit from the fit's Laplace covariance (optimise.curved): the same optimum
     cov = torch.as_tensor(lap["covariance_unconstrained"], dtype=torch.float64)
     rc = refit_shift(prob, res.x, ref, res.x, s_x, iterations=3, options=TIGHT, tol=1e-3, cov_x=cov)
-    assert rc["solvers"] == ["newton"] * len(rc["steps"])
+    assert rc["solvers"] == ["curved"] * len(rc["steps"])
     torch.testing.assert_close(rc["x"], brute, rtol=0, atol=0.01 * float(s_x.min()))
     # the numerical sigma is the size of the shift
     for n in FREE:
@@ -188,23 +188,32 @@ def test_demo_chain_steps_follow_the_tau_rule(tau, done, expected):
     assert chain_steps(tau, done) == expected
 
 
-def test_a_chord_refit_that_cannot_descend_hands_over_to_lbfgs(biased_fit):
-    """A wrong inverse Hessian (-1 x the Laplace covariance: every step climbs) makes chord_refit give up (None), and
-    refit_shift refits by L-BFGS to the same optimum as with the right one."""
-    from skyfit.fit.budget import chord_refit
+def test_a_fit_from_a_known_curvature_reaches_the_lbfgs_optimum_in_fewer_gradients(biased_fit):
+    """optimise.curved from 3 noise sigma off the optimum, with the Laplace covariance there: the L-BFGS optimum to 0.01
+    sigma in under half its evaluations; with the matrix 4x too large or too small, still there. It gives up (None) with
+    a matrix that is not positive definite or too few iterations; refit_shift then refits by L-BFGS, to the same
+    optimum."""
+    from skyfit.fit.optimise import curved
 
     prob, res, lap, _ = biased_fit
-    ref = reference_problem(prob, _fine())
     cov = torch.as_tensor(lap["covariance_unconstrained"], dtype=torch.float64)
     s_x = torch.tensor([lap["sigma_unconstrained"][n] for n in FREE], dtype=torch.float64)
-    start = res.x.detach() + 3 * s_x.to(res.x.dtype)  # off the optimum: a step that matters
-    assert chord_refit(prob, start, -cov, s_x) is None
-    good = chord_refit(prob, start, cov, s_x)
-    lb = fit(prob, TIGHT, x0=start).x
-    torch.testing.assert_close(good, lb, rtol=0, atol=0.01 * float(s_x.min()))
+    start = res.x.detach() + 3 * s_x.to(res.x.dtype) * torch.tensor([1.0, -1.0, 1.0, -1.0, 1.0], dtype=res.x.dtype)
+    lb = fit(prob, TIGHT, x0=start)
+    cv = curved(prob, start, cov)
+    assert cv is not None and cv.convergence["method"] == "bfgs (known curvature)"
+    torch.testing.assert_close(cv.x, lb.x, rtol=0, atol=0.01 * float(s_x.min()))
+    assert cv.convergence["evaluations"] < 0.5 * lb.convergence["evaluations"], (cv.convergence, lb.convergence)
+    for wrong in (4.0, 0.25):  # a curvature taken elsewhere: BFGS corrects it (the stopping rule trusts it: 2x)
+        cw = curved(prob, start, wrong * cov)
+        assert cw is not None
+        torch.testing.assert_close(cw.x, lb.x, rtol=0, atol=0.02 * float(s_x.min()))
+    assert curved(prob, start, -cov) is None  # not positive definite
+    assert curved(prob, start, cov, iterations=1) is None  # not there in one step
+    ref = reference_problem(prob, _fine())
     rs = refit_shift(prob, res.x, ref, res.x, s_x, iterations=1, options=TIGHT, cov_x=-cov)
-    assert rs["solvers"] == ["lbfgs"]
     rn = refit_shift(prob, res.x, ref, res.x, s_x, iterations=1, options=TIGHT, cov_x=cov)
+    assert rs["solvers"] == ["lbfgs"] and rn["solvers"] == ["curved"]
     torch.testing.assert_close(rs["x"], rn["x"], rtol=0, atol=0.01 * float(s_x.min()))
 
 

@@ -57,7 +57,7 @@ from ..camera.sun import parse_location, parse_time, sun_position
 from ..io.photo import LinearPhoto, block_view, exif_location, exif_stamps, read_photo, reduced_photo
 from .data import Observation
 from .model import FitProblem, aerosol_log_depth, applied_lens, lens_directions, tilt_directions
-from .optimise import curved
+from .optimise import curved, least_squares_applies
 from .optimise import fit as optimise
 from .parameters import CAMERA_RESPONSE, NUISANCE
 from .problem import fit_settings, make_model, prepare
@@ -1800,9 +1800,11 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
     # a fit carried on from another's result with its tables (a race's fit over all the blocks, a second pass, a lens
     # refit) starts near its optimum, as every refresh after the first does
     carried = tables is not None and options.adam_steps == 0 and options.starts == 1
+    # Levenberg-Marquardt (a squared loss under "auto") builds its Gauss-Newton curvature itself
+    lbfgs = options.method == "lbfgs" or (options.method == "auto" and least_squares_applies(problem) is not None)
     for k in range(max(1, refreshes)):
         res = None
-        if (k > 0 or carried) and LAGGED_CURVED and curvature is not False:
+        if (k > 0 or carried) and lbfgs and LAGGED_CURVED and curvature is not False:
             # a fit that starts near its optimum (a refresh's, the factor rebuilt at the last result): BFGS from the
             # Hessian taken once at the first such start (:func:`skyfit.fit.optimise.curved`), L-BFGS where it does
             # not converge
@@ -1873,9 +1875,10 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
 
 LAGGED_CURVED = True
 """A lagged fit's refreshes after its first, and every fit of one carried on from another's result with its tables, are
-fitted from the Hessian taken at the first such fit's start (:func:`skyfit.fit.optimise.curved`), where that converges;
-L-BFGS from no curvature took 50-100 evaluations a fit (docs/photos.md, "Fits that start from a known curvature").
-False: every fit by L-BFGS."""
+fitted from the Hessian taken at the first such fit's start (:func:`skyfit.fit.optimise.curved`), where that converges,
+when they would be fitted by L-BFGS (a photo's: its priors live in the objective); L-BFGS from no curvature took
+50-100 evaluations a fit (docs/photos.md, "Fits that start from a known curvature"). Levenberg-Marquardt builds its own
+Gauss-Newton curvature. False: every fit by the options' optimiser."""
 
 
 def _curvature(problem: FitProblem, x: torch.Tensor) -> torch.Tensor | bool:
