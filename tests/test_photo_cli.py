@@ -462,7 +462,7 @@ def test_the_sun_is_registered_where_the_saturated_region_lies(photos, monkeypat
     second 5 px aside: its centroid lies off the sun) and a photo whose saturated region is that region moved by a
     known shift: it returns the shift to 0.3 px, overlap > 0.85, and the registered sun is the true one, where the
     region's centroid is > 1.5 px off. Unshifted: no shift. The same region stated 12 px from the model's sun does not
-    reach it and is not used."""
+    reach it and is not used; on a flat aureole (SUN_REGISTRATION_MIN_CONTRAST) it is not used either."""
     import dataclasses
 
     import scipy.ndimage
@@ -497,9 +497,15 @@ def test_the_sun_is_registered_where_the_saturated_region_lies(photos, monkeypat
         assert reg.shift[0] == pytest.approx(dx, abs=0.3) and reg.shift[1] == pytest.approx(dy, abs=0.3)
         assert (reg.x, reg.y) == pytest.approx((sx + reg.shift[0], sy + reg.shift[1]), abs=1e-9)
         assert reg.covers_sun and reg.used
+        assert reg.contrast == pytest.approx(lum[own].max() / lum[own].min() - 1.0, rel=0.05)
     # a model whose brightest pixels lie 12 px beside its sun (a bright horizon beside a compact core): not used
     beside = fit_photo_module.register_sun(doctored, None, None, (sx + 12.0, sy))
     assert beside is not None and beside.iou > 0.85 and not beside.covers_sun and not beside.used
+    # the same lobes on a broad aureole 100x brighter (contrast under 3 %): the region follows its weak slope, not used
+    monkeypatch.setattr(fit_photo_module, "predict_blocks", lambda *a: fake_predict(*a) + 100.0)
+    flat = fit_photo_module.register_sun(doctored, None, None, (sx, sy))
+    assert flat is not None and flat.covers_sun and flat.iou > 0.85
+    assert flat.contrast < 0.03 and not flat.used
 
 
 # -- a photo larger than the fit's working size -------------------------------------------------------
