@@ -139,6 +139,18 @@ def least_squares_applies(problem: FitProblem) -> str | None:
     return None
 
 
+def resolved_method(problem: FitProblem, opt: FitOptions) -> str:
+    """The optimiser :func:`fit` runs for ``opt.method``: ``lbfgs``, or ``lm`` where it is asked for or, under
+    ``auto``, where it applies (:func:`least_squares_applies`); a FitError where ``lm`` is asked for and cannot
+    minimise the loss."""
+    if opt.method == "lbfgs":
+        return "lbfgs"
+    why = least_squares_applies(problem)
+    if why is not None and opt.method == "lm":
+        raise FitError(f"the lm optimiser minimises squared residuals, but {why}; use lbfgs or auto")
+    return "lbfgs" if why is not None else "lm"
+
+
 def residual_vector(problem: FitProblem, x: Tensor, tables=None) -> Tensor:
     """The residuals r of every element, so that ``problem.objective(x) = (|r|^2 / 2 + sum log s) / n_elements``
     for a squared rho (0 for elements the loss leaves out), shape (M,).
@@ -531,12 +543,7 @@ def fit(problem: FitProblem, options: FitOptions | None = None, x0: Tensor | Non
     starts = param.spread_starts(opt.starts, gen, dtype, device)
     if x0 is not None:
         starts[0] = x0.to(dtype=dtype, device=device)
-    method = opt.method
-    if method != "lbfgs":
-        why = least_squares_applies(problem)
-        if why is not None and method == "lm":
-            raise FitError(f"the lm optimiser minimises squared residuals, but {why}; use lbfgs or auto")
-        method = "lbfgs" if why is not None else "lm"
+    method = resolved_method(problem, opt)
     run_start = _run_start_lm if method == "lm" else _run_start
     bar = None
     if opt.progress:

@@ -57,7 +57,7 @@ from ..camera.sun import parse_location, parse_time, sun_position
 from ..io.photo import LinearPhoto, block_view, exif_location, exif_stamps, read_photo, reduced_photo
 from .data import Observation
 from .model import FitProblem, aerosol_log_depth, applied_lens, lens_directions, tilt_directions
-from .optimise import curved, least_squares_applies
+from .optimise import curved, resolved_method
 from .optimise import fit as optimise
 from .parameters import CAMERA_RESPONSE, NUISANCE
 from .problem import fit_settings, make_model, prepare
@@ -1801,7 +1801,7 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
     # refit) starts near its optimum, as every refresh after the first does
     carried = tables is not None and options.adam_steps == 0 and options.starts == 1
     # Levenberg-Marquardt (a squared loss under "auto") builds its Gauss-Newton curvature itself
-    lbfgs = options.method == "lbfgs" or (options.method == "auto" and least_squares_applies(problem) is not None)
+    lbfgs = resolved_method(problem, options) == "lbfgs"
     for k in range(max(1, refreshes)):
         res = None
         if (k > 0 or carried) and lbfgs and LAGGED_CURVED and curvature is not False:
