@@ -144,7 +144,15 @@ def _robust_smooth_fit(values: np.ndarray, elev: np.ndarray, az: np.ndarray, use
         sel = band == b
         keep[sel] = (y[sel] <= np.percentile(y[sel], 60)) if outliers_high else (y[sel] >= np.percentile(y[sel], 40))
     for _ in range(7):
-        coef, *_ = np.linalg.lstsq(x[keep], y[keep], rcond=None)
+        xk = x[keep]
+        # the normal equations where they are well conditioned (a sky around the horizon: condition number ~500, so
+        # ~1e-11 in float64), 5x faster than an SVD least squares on 10^5 rows (seven per fit, two fits for each
+        # camera a photo fit tries); the SVD where the sky's pixels leave the basis nearly degenerate
+        gram = xk.T @ xk
+        if np.linalg.cond(gram) < 1e10:
+            coef = np.linalg.solve(gram, xk.T @ y[keep])
+        else:
+            coef, *_ = np.linalg.lstsq(xk, y[keep], rcond=None)
         res = y - x @ coef
         sigma = 1.4826 * np.median(np.abs(res[keep] - np.median(res[keep])))
         keep = (res > -max(2.5 * sigma, low)) & (res < max(4.0 * sigma, high))
