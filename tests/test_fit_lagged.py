@@ -275,6 +275,43 @@ def test_float32_tables_give_the_float64_factor(sky4, monkeypatch):
     assert 0.0 < float((f32 / f64 - 1).abs().max()) < 2e-3  # float32 did round
 
 
+def test_one_build_of_two_atmospheres_side_by_side_gives_each_ones_tables(sky4, monkeypatch):
+    """A refresh's tables at x and at its AOD's step from one precomputation on the two atmospheres' wavelengths joined
+    (MS_JOINT_BUILD): every table equal to the two separate builds' (float64, to rounding), and so the factor and its
+    AOD slope; atmospheres that differ in g (a scalar) are not joined."""
+    from skyfit.fit import photo as fp
+    from skyfit.scattering.bruneton_tables import TableSizes
+    from skyfit.scattering.multiple import precompute
+
+    problem = fp.PhotoProblem.of(_problem(sky4, ["mie_aod_550", "exposure"]), {})
+    x = problem.param.initial_vector()
+    atms = [problem.param.atmosphere(problem.param.to_physical(at)) for at in (x, fp.aod_stepped(problem, x))]
+    assert not torch.equal(atms[0].mie_scattering, atms[1].mie_scattering)
+    joint = fp.joined_atmosphere(atms)
+    assert joint.wavelengths.numel() == 2 * atms[0].wavelengths.numel()
+    sizes = TableSizes(*SIZES)
+    parts = fp.split_tables(precompute(joint, orders=4, sizes=sizes), atms)
+    for atm, part in zip(atms, parts):
+        alone = precompute(atm, orders=4, sizes=sizes)
+        assert part.atm is atm or torch.equal(part.atm.mie_scattering, atm.mie_scattering)
+        for f in ("transmittance_columns", "direct_irradiance", "irradiance", "single_rayleigh", "single_mie", "multiple"):
+            a, b = getattr(alone, f), getattr(part, f)
+            assert a.shape == b.shape
+            assert torch.allclose(a, b, rtol=1e-12, atol=1e-12 * float(a.abs().max())), f
+    assert fp.joined_atmosphere([atms[0], atms[0].replace(mie_g=atms[0].mie_g * 0.9)]) is None
+
+    out = {}
+    monkeypatch.setattr(fp, "MS_TABLE_DTYPE", None)  # float64 tables: equal to rounding (float32 would round apart)
+    for joint_build in (True, False):
+        monkeypatch.setattr(fp, "MS_JOINT_BUILD", joint_build)
+        problem = fp.PhotoProblem.of(_problem(sky4, ["mie_aod_550", "exposure"]), {})
+        fp.freeze_tables(problem, x, problem.model.factor_model(), wavelength_nodes_count=None)
+        out[joint_build] = (problem.frozen_factor[0], problem.frozen_slope[0][0], problem.table_builds)
+    (f1, d1, n1), (f2, d2, n2) = out[True], out[False]
+    assert n1 == n2 == 2 and float((d2).abs().max()) > 0.01  # a slope that is not zero
+    assert torch.allclose(f1, f2, rtol=1e-12) and torch.allclose(d1, d2, rtol=1e-9, atol=1e-12)
+
+
 def test_factor_follows_a_turned_camera(sky):
     """A photo fit turns its camera (heading, tilt) while the multiple-scattering factor is frozen. Held per sample,
     the factor keeps the multiple-scattering pattern where the camera was; followed to the current geometry in the

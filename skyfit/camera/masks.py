@@ -126,18 +126,27 @@ def _robust_smooth_fit(values: np.ndarray, elev: np.ndarray, az: np.ndarray, use
     Returns:
         the fitted function at every pixel, shape (H, W) (NaN where elev or az is NaN).
     """
-    u = np.nan_to_num(elev) / 90.0
-    a = np.nan_to_num(az)
-    cols = []
-    for p in range(4):
-        up = u**p
-        cols += [up] + [up * f(k * a) for k in (1, 2) for f in (np.cos, np.sin)]
-    basis = np.stack(cols, -1)
+    def terms(e: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        u, a = np.nan_to_num(e) / 90.0, np.nan_to_num(z)
+        return u, [np.ones_like(a)] + [f(k * a) for k in (1, 2) for f in (np.cos, np.sin)]
+
+    def basis(e: np.ndarray, z: np.ndarray) -> np.ndarray:
+        u, waves = terms(e, z)
+        return np.stack([u**p * w for p in range(4) for w in waves], -1)
+
+    def model(coef: np.ndarray) -> np.ndarray:
+        """sum_p u^p sum_k c_pk wave_k at every pixel, without the (H, W, 20) basis."""
+        u, waves = terms(elev, az)
+        out = np.zeros_like(u)
+        for p in reversed(range(4)):  # Horner in u
+            out = out * u + sum(c * w for c, w in zip(coef[5 * p:5 * p + 5], waves))
+        return out
+
     idx = np.flatnonzero(use)
     if len(idx) < 200:
         raise CalibrationError(f"too few sky pixels ({len(idx)}) near the horizon to model the sky")
     idx = idx[:: max(1, len(idx) // 200_000)]  # a subsample keeps a 4000 px photo fast
-    x, y = basis.reshape(-1, basis.shape[-1])[idx], values.ravel()[idx]
+    x, y = basis(elev.ravel()[idx], az.ravel()[idx]), values.ravel()[idx]
     band = np.floor(np.nan_to_num(elev.ravel()[idx]) / 3.0).astype(np.int64)
     keep = np.zeros(len(idx), dtype=bool)
     for b in np.unique(band):
@@ -158,7 +167,7 @@ def _robust_smooth_fit(values: np.ndarray, elev: np.ndarray, az: np.ndarray, use
         keep = (res > -max(2.5 * sigma, low)) & (res < max(4.0 * sigma, high))
         if keep.sum() < 100:
             raise CalibrationError("the sky near the horizon fits no smooth model (too little clear sky)")
-    return basis @ coef
+    return model(coef)
 
 
 def _texture(img: np.ndarray, use: np.ndarray, sigma: float) -> np.ndarray:
