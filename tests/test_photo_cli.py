@@ -197,10 +197,15 @@ def test_fit_photo_jpeg(fitted):
 def test_fit_photo_of_every_format_writes_result_and_png(photos, tmp_path, capsys, name):
     out = tmp_path / "out"
     out.mkdir()
-    rc, so, se = run(_fit_argv(photos / name, out / "r.json", photos / "cheap.yaml", T1, "--json"), capsys)
+    bar = ("--progress",) if name == "sky.png" else ()
+    rc, so, se = run(_fit_argv(photos / name, out / "r.json", photos / "cheap.yaml", T1, "--json", *bar), capsys)
     assert rc == 0, se
     assert json.loads(so)["out"] == str(out / "r.json")
     check_photo_result(out, name)
+    if bar:  # one bar over the photo fit's stages on stderr, the stage at work named; stdout stays the JSON line
+        assert "photo fit: " in se and "/4 stages" in se and "second pass" in se and "report" in se, se[-500:]
+    else:
+        assert "photo fit" not in se
 
 
 def test_evaluate_another_photo_of_the_same_camera(photos, fitted, capsys):

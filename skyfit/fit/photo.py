@@ -1082,6 +1082,7 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         # a photo in another RGB space (Display P3, Adobe RGB): the CIE observer through its primaries
         response = icc_sensitivities(scene.photo.meta["icc"]["rgb_from_xyz"])
     timings = dict(scene.seconds)
+    bar = StageBar(progress and not in_child(), second_pass)
 
     shared: dict = {}  # Bruneton tables at the starting atmosphere, shared by the short fits (camera-independent)
     masks_of = {id(scene.camera): scene.masks}
@@ -1170,6 +1171,7 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         best = scene.candidates[0]
         close = projection_decision(scene.candidates, scene.detected_sun)
         if len(close) > 1:
+            bar.stage(f"short fits of {len(close)} projections")
             scores = quick_losses(*[(under(scene, c.camera), None) for c in close])
             scene.notes.append("projection chosen by the fit's loss among " + ", ".join(
                 f"{c.projection} {v:.4g}" for c, v in zip(close, scores)))
@@ -1183,6 +1185,7 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     start = None
     if scene.detected_sun is None and "sun_azimuth_offset" in s.free and not calibrated:
         degs = (0.0, 90.0, 180.0, 270.0)
+        bar.stage("the heading from the sky pattern")
         losses = quick_losses(*[(scene, {"sun_azimuth_offset": math.radians(deg)}) for deg in degs])
         start = {"sun_azimuth_offset": math.radians(min(zip(losses, degs))[1])}
     def carried_on(sc: PhotoScene, fit, done: int, settle_first=None):
@@ -1244,8 +1247,10 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         return (fit_l, lens) if kept else (fit, None)
 
     t1 = _now()
+    bar.done()
     fit_r, lens = None, None
     if runner_up is None:
+        bar.stage("fit")
         # the short fits' tables were built at the same starting atmosphere (the start moves only the heading)
         fit = probed(scene, run(scene, start=start, tables=shared.get("tables"), settle_first=False))
         timings["fit_pass1"] = _now() - t1
@@ -1258,6 +1263,8 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         # probe and lens (held-out case 4, a Kannala-Brandt lens: equidistant lost to equisolid at 0.295 against 0.278
         # without its lens and won at 0.169 with it), and the lower loss keeps its projection
         sc_r = under(scene, runner_up.camera)
+        bar.stage(f"race of {scene.camera.projection} and {runner_up.projection}")
+
         def race(sc):
             return run(sc, start=start, tables=shared.get("tables"), settle_first=False, refreshes=RACE_REFRESHES,
                        target=RACE_SAMPLES, refresh_last=False)
@@ -1272,8 +1279,10 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
                                f"is over {RACE_RATIO:g}x the {kept} fit's {lk:.5g}: {dropped} dropped")
             if lr < la:
                 scene, fit = promoted(sc_r, runner_up), fit_r
+            bar.stage(f"fit ({dropped} dropped)")
             fit, fit_r = probed(scene, raced_on(scene, fit)), None
         else:
+            bar.stage(f"fits of {scene.camera.projection} and {runner_up.projection}")
             def converged(f):
                 return lambda sc: with_lens(sc, probed(sc, raced_on(sc, f)))
 
@@ -1286,11 +1295,14 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
                 scene, fit, lens = promoted(sc_r, runner_up), fit_r, lens_r
         timings["fit_pass1"] = _now() - t1
     if fit_r is None:
+        bar.stage("lens")
         t_lens = _now()
         fit, lens = with_lens(scene, fit)
         timings["lens"] = _now() - t_lens
     blocks, prep, problem, res = fit
+    bar.done()
     if second_pass:
+        bar.stage("second pass")
         t2 = _now()
         rel = relative_residual_map(problem, res.x, blocks, scene)
         grown = grow_outlier_mask(_upsample(np.nan_to_num(rel, nan=0.0), blocks.step, scene.photo.rgb.shape[:2]),
@@ -1311,9 +1323,12 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
             blocks, prep, problem, res = run(scene, start=start2, settings=dataclasses.replace(s, adam_steps=0, starts=1),
                                              refreshes=SECOND_PASS_REFRESHES, tables=last)
         timings["fit_pass2"] = _now() - t2
+        bar.done()
     t3 = _now()
+    bar.stage("report: Laplace and error budget" if laplace else "report")
     result = photo_result(scene, blocks, prep, problem, res, config, laplace=laplace)
     timings["report"] = _now() - t3
+    bar.close()
     result["seconds_split"] = {k: round(v, 3) for k, v in timings.items()}
     result["convergence"]["ms_table_builds"] = shared.get("builds", 0)  # every Bruneton build of this photo's fits
     result["seconds"] = sum(timings.values())
@@ -1322,6 +1337,35 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
     if scene.scale > 1:  # the photo's own pixels, as RESULT.json's camera
         cam = FisheyeCamera.from_metadata(rescaled_camera_meta(cam.to_metadata(), float(scene.scale), tuple(result["photo"]["shape"])))
     return PhotoFit(result, problem, res.x, scene, blocks, blocks.usable, model_rgb, cam)
+
+
+class StageBar:
+    """One tqdm bar over a photo fit's stages (camera, fit, second pass, report) on stderr, the stage at work as its
+    postfix: a photo's fit is a minute of short fits, races, table builds and fits from a known curvature, most of
+    which draw no bar of their own (a fit's L-BFGS bar comes and goes beneath it). Off: every call does nothing."""
+
+    def __init__(self, on: bool, second_pass: bool = True):
+        self.bar = None
+        if on:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=4 if second_pass else 3, desc="photo fit", unit="stage", leave=False,
+                            bar_format="{desc}: {n_fmt}/{total_fmt} stages [{elapsed}] {postfix}")
+            self.stage("camera")
+
+    def stage(self, name: str) -> None:
+        if self.bar is not None:
+            self.bar.set_postfix_str(name)
+
+    def done(self) -> None:
+        if self.bar is not None:
+            self.bar.update()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.update(self.bar.total - self.bar.n)
+            self.bar.close()
+            self.bar = None
 
 
 def _continuation(problem: FitProblem, x: torch.Tensor, free) -> tuple[dict, tuple | None]:
