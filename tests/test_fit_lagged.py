@@ -312,6 +312,27 @@ def test_one_build_of_two_atmospheres_side_by_side_gives_each_ones_tables(sky4, 
     assert torch.allclose(f1, f2, rtol=1e-12) and torch.allclose(d1, d2, rtol=1e-9, atol=1e-12)
 
 
+def test_a_fits_loss_on_other_blocks_with_its_factor(sky4):
+    """loss_with_factor (a probe's judge: the first fit's objective on the probe's blocks): on a fresh problem of the same
+    data it is the fit's own objective, at the tables' point and where the factor is followed in the AOD from there;
+    the problem it was given keeps its own state."""
+    from skyfit.fit import photo as fp
+
+    problem = fp.PhotoProblem.of(_problem(sky4, ["mie_aod_550", "exposure"]), {})
+    x = problem.param.initial_vector()
+    fp.freeze_tables(problem, x, problem.model.factor_model(), wavelength_nodes_count=None)
+    assert problem.frozen_slope is not None
+    x1 = fp.aod_stepped(problem, x)  # AOD +20 %: the followed factor, not the one at x
+    fresh = fp.PhotoProblem.of(_problem(sky4, ["mie_aod_550", "exposure"]), {})
+    for at in (x, x1):
+        with torch.no_grad():
+            own = float(problem.objective(at))
+        assert fp.loss_with_factor(problem, at, fresh) == pytest.approx(own, rel=1e-9)
+    with torch.no_grad():
+        assert float(problem.objective(x1)) != pytest.approx(float(problem.objective(x)), rel=1e-3)  # it moved
+    assert getattr(fresh, "frozen_factor", None) is None and getattr(fresh, "trust", None) is None  # left as it was
+
+
 def test_factor_follows_a_turned_camera(sky):
     """A photo fit turns its camera (heading, tilt) while the multiple-scattering factor is frozen. Held per sample,
     the factor keeps the multiple-scattering pattern where the camera was; followed to the current geometry in the
