@@ -795,11 +795,11 @@ PROBE_REFRESHES = 3
 goes on to :data:`MS_REFRESHES` in all. On the synthetic suite a losing probe (case 9: loss 0.41-1.2 against 0.126)
 ran all six refreshes without settling, 70 s of a 185 s fit. [1]"""
 PROBE_BLOCKS = True
-"""A probe fits on the race's :data:`RACE_SAMPLES` blocks first and goes on over all the photo's blocks only where it ends
-below the first fit's loss on those same blocks (:func:`loss_with_factor`; where the probe is below that, the first fit
-refitted there, from its result), as the race does: its fits are then about
-six times cheaper, its builds as many. A losing probe of seed-0 synthetic case 19 (a Kannala-Brandt bracket) took 33 s
-of its 74 s through the CLI over all the blocks (docs/photos.md, "A probe on the race's blocks"). False: over all
+"""A probe fits on the race's :data:`RACE_SAMPLES` blocks first, as the race does, and goes on over all the photo's blocks
+only where it ends below the first fit's loss on those same blocks (:func:`loss_with_factor`; where the probe is below
+that, below the first fit refitted there from its result too). Its fits are cheaper there, its builds as many: the losing
+probe of seed-0 synthetic case 19 (a Kannala-Brandt bracket) took 21 s on 333 blocks where it took 33 s of the photo's
+74 s over all of them, through the CLI on 2 threads (docs/photos.md, "A probe on the race's blocks"). False: over all
 the blocks from the start."""
 PROBE_AOD = (0.05, 0.4)
 """Starting AODs of that second fit: the hazy one when the first ended below their geometric mean, else the clear one."""
@@ -1223,7 +1223,8 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
         aod1 = float(problem.param.physical_dict(res.x)["mie_aod_550"])
         probe = PROBE_AOD[1] if aod1 < math.sqrt(PROBE_AOD[0] * PROBE_AOD[1]) else PROBE_AOD[0]
         start_p = {**(start or {}), "mie_aod_550": probe}
-        why = ""
+        head = (f"the camera's nuisances (gains, saturations, vignetting) of the {sc.camera.projection} fit strained their "
+                f"priors (sum z^2 {strain:.1f} > {limit:.4g}): refitted from AOD {probe:g}, ")
         if PROBE_BLOCKS:
             # on the race's blocks first; over all the blocks only where it beats the first fit there
             fit_q = run(sc, start=start_p, refreshes=PROBE_REFRESHES, target=RACE_SAMPLES, refresh_last=False)
@@ -1236,25 +1237,22 @@ def fit_scene(scene: PhotoScene, config: dict, *, overrides: dict | None = None,
                 fit_f = run(sc, start=start_f, target=RACE_SAMPLES, refreshes=1, refresh_last=False, tables=last_f,
                             settings=dataclasses.replace(s, adam_steps=0, starts=1))
                 first_q = min(first_q, fit_f[3].loss)
-            why = (f"on {int(fit_q[0].usable.sum())} blocks loss {fit_q[3].loss:.5g} against {first_q:.5g} for the first "
-                   "fit there")
+            head += (f"on {int(fit_q[0].usable.sum())} blocks loss {fit_q[3].loss:.5g} against {first_q:.5g} for the first "
+                     "fit there")
             if not fit_q[3].loss < first_q:
-                sc.notes.append(f"the camera's nuisances (gains, saturations, vignetting) of the {sc.camera.projection} fit "
-                                f"strained their priors (sum z^2 {strain:.1f} > {limit:.4g}): refitted from AOD {probe:g}, "
-                                f"{why} (not kept)")
+                sc.notes.append(f"{head} (not kept)")
                 return fit
             fit_p = carried_on(sc, fit_q, min(PROBE_REFRESHES, fit_q[3].convergence.get("ms_refreshes", PROBE_REFRESHES)),
                                settle_first=False)
-            why += "; over all the blocks "
+            head += "; over all the blocks "
         else:
             fit_p = run(sc, start=start_p, refreshes=PROBE_REFRESHES)
             if fit_p[3].loss < res.loss and fit_p[3].convergence.get("ms_refreshes", 0) >= PROBE_REFRESHES:
                 # a probe that wins but has not settled goes on, from where it stands, with the tables it ended on
                 fit_p = carried_on(sc, fit_p, PROBE_REFRESHES)
         better = fit_p[3].loss < res.loss
-        sc.notes.append(f"the camera's nuisances (gains, saturations, vignetting) of the {sc.camera.projection} fit strained "
-                        f"their priors (sum z^2 {strain:.1f} > {limit:.4g}): refitted from AOD {probe:g}, {why}loss "
-                        f"{fit_p[3].loss:.5g} against {res.loss:.5g} from the first start ({'kept' if better else 'not kept'})")
+        sc.notes.append(f"{head}loss {fit_p[3].loss:.5g} against {res.loss:.5g} from the first start "
+                        f"({'kept' if better else 'not kept'})")
         return fit_p if better else fit
 
     def with_lens(sc: PhotoScene, fit):
