@@ -81,3 +81,51 @@ def test_api_render_and_fit_on_cuda_match_the_cpu():
     b = skyfit.fit(obs, "earth", device="cuda", **kw)
     for n in kw["free"]:  # the optimiser's path differs in the last digits: agreement to 1e-6 relative
         assert abs(a.parameters[n] - b.parameters[n]) <= 1e-6 * abs(a.parameters[n])
+
+
+GPU = "cuda"  # the device compared with the CPU below (a GPU machine; the CPU-only CI skips these)
+
+
+def _cli_result(tmp_path, capsys, name: str, argv: list) -> dict:
+    """Run one CLI command writing ``--out tmp_path/name.json``; its RESULT.json."""
+    import json
+
+    out = tmp_path / f"{name}.json"
+    rc, _, err = run([*argv, "--out", out], capsys)
+    assert rc == 0, err
+    return json.loads(out.read_text())
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cli_fit_of_a_fisheye_on_cuda_writes_what_the_cpu_writes(tmp_path, capsys):
+    """The whole ``skyfit fit --laplace`` on an EXR (fit, error budget, residual maps) on CUDA: the same free values and
+    sigmas as on the CPU to 1e-5 relative (float64; the optimiser's path differs in the last digits), and the plots.
+    Before, the report indexed the CPU pixel index with the CUDA mask (found on an H200, 2026-12-04)."""
+    sky = tmp_path / "sky.exr"
+    assert run(["render", "earth", "--out", sky, "--sun-zenith", "40", "--size", "32"], capsys)[0] == 0
+    res = {dev: _cli_result(tmp_path, capsys, dev, ["fit", sky, "--config", "earth", "--free", "mie_beta_550,mie_g,exposure",
+                                                    "--laplace", "--no-progress", "--device", dev]) for dev in ("cpu", GPU)}
+    for n in res["cpu"]["free"]:
+        assert res[GPU]["parameters"][n] == pytest.approx(res["cpu"]["parameters"][n], rel=1e-5)
+        assert res[GPU]["laplace"]["sigma"][n] == pytest.approx(res["cpu"]["laplace"]["sigma"][n], rel=1e-3)
+    assert (tmp_path / f"{GPU}_sky_maps.png").stat().st_size > 0
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cli_fit_of_a_photo_on_cuda_recovers_what_the_cpu_does(tmp_path, capsys):
+    """A synthetic 200x200 photo fitted end to end on CUDA (camera, masks, lagged Bruneton fit, lens from the sun,
+    error budget, RESULT.png) gives the CPU's AOD and sigma to 1e-4 relative. Before, the lens step built its rotation
+    on the CPU from CUDA tilts and the budget's Newton step multiplied a CPU covariance by a CUDA gradient."""
+    from skyfit.tools.photo_synth import make_case
+
+    truth = make_case(3, tmp_path / "case", size=200, projection="equisolid")
+    photo = tmp_path / "case" / truth["photo"]
+    res = {dev: _cli_result(tmp_path, capsys, dev, ["fit", photo, "--time", truth["time"], "--location=" + truth["location"],
+                                                    "--no-progress", "--device", dev]) for dev in ("cpu", GPU)}
+    a, b = res["cpu"]["aerosol"], res[GPU]["aerosol"]
+    assert b["aod_550"] == pytest.approx(a["aod_550"], rel=1e-4)
+    assert b["sigma"]["aod_550"] == pytest.approx(a["sigma"]["aod_550"], rel=1e-3)
+    assert res[GPU]["sun"]["separation_deg"] == pytest.approx(res["cpu"]["sun"]["separation_deg"], abs=1e-3)
+    assert (tmp_path / f"{GPU}.png").stat().st_size > 0

@@ -202,7 +202,7 @@ def numerical_shift(problem: FitProblem, x: Tensor, cov_x: Tensor, reference: Fi
     preds = [p + d for p, d in zip(problem.predict(xr), delta)]
     nll = problem.loss_from_predictions(preds, problem.param.to_physical(xr)) * problem.n_elements
     (g,) = torch.autograd.grad(nll, xr)
-    dx = -(cov_x.to(g.dtype) @ g)
+    dx = -(cov_x.to(g) @ g)
     num = sum(float((d**2).sum()) for d in delta)
     rel = sum(float(((d / torch.where(f != 0, f, torch.ones_like(f))) ** 2).sum()) for d, f in zip(delta, m_fit))
     over = sum(float(((d / o.sigma[o.mask]) ** 2).sum()) for d, o in zip(delta, problem.observations))
@@ -369,7 +369,8 @@ def reference_polish(problem: FitProblem, reference: FitProblem, x_start: Tensor
         with torch.no_grad():
             preds = reference.predict(x)
             phys = reference.param.to_physical(x)
-        return torch.cat(whitened_residuals(reference, preds, phys)).to(torch.float64)
+        # the few-parameter LM runs on the CPU whatever the problem's device
+        return torch.cat(whitened_residuals(reference, preds, phys)).to(dtype=torch.float64, device="cpu")
 
     r = resid(z)
     loss_start = 0.5 * float((r**2).mean())
@@ -766,11 +767,11 @@ def numerical_term(problem: FitProblem, x: Tensor, lap: dict, *, reference: SkyM
     the reference's loss."""
     x = x.detach()
     names = display_names(problem)
-    cov_noise = torch.as_tensor(lap["covariance_unconstrained"], dtype=torch.float64)
+    cov_noise = torch.as_tensor(lap["covariance_unconstrained"], dtype=torch.float64, device=x.device)
     P = x.numel()
     budget: dict = {"reference": None, "model_difference": None}
-    dx = torch.zeros(P, dtype=torch.float64)
-    tail = torch.zeros(P, dtype=torch.float64)
+    dx = torch.zeros(P, dtype=torch.float64, device=x.device)
+    tail = torch.zeros(P, dtype=torch.float64, device=x.device)
     delta, lagged = None, None
     if numerical:
         ref = reference_problem(problem, reference)
@@ -782,7 +783,7 @@ def numerical_term(problem: FitProblem, x: Tensor, lap: dict, *, reference: SkyM
         v_newton = physical_slot_values(problem, x.to(torch.float64) + dx)
         budget["nonlinearity"] = rho = nonlinearity(problem, x, dx)
         if refits > 0 and rho > NONLINEAR:
-            s_x = torch.as_tensor([lap["sigma_unconstrained"][n] for n in names], dtype=torch.float64)
+            s_x = torch.as_tensor([lap["sigma_unconstrained"][n] for n in names], dtype=torch.float64, device=x.device)
             rs = refit_shift(problem, x, ref, x, s_x, refits, options, cov_x=cov_noise)
             budget["method"] = f"refit ({len(rs['steps'])} lagged refits)"
             budget["refit_steps_in_sigma"] = rs["steps"]
@@ -956,7 +957,7 @@ def expansion_spread(problem: FitProblem, x: Tensor, wide: FitProblem, x_wide: T
         C2 = _natural_covariance(q, xq)
         names2 = display_names(q)
         f, g1, g2 = float(v["mie_hg_weight"]), float(v["mie_g"]), float(v["mie_g2"])
-        M = torch.zeros(len(names1), len(names2), dtype=torch.float64)
+        M = torch.zeros(len(names1), len(names2), dtype=torch.float64, device=x.device)
         for i, n in enumerate(names1):
             if n == "mie_g":
                 for m_, c in (("mie_g", f), ("mie_g2", 1.0 - f), ("mie_hg_weight", g1 - g2)):
@@ -1034,7 +1035,7 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
     x = x.detach()
     lap = laplace_summary(problem, x) if lap is None else lap
     names = display_names(problem)
-    cov_noise = torch.as_tensor(lap["covariance_unconstrained"], dtype=torch.float64)
+    cov_noise = torch.as_tensor(lap["covariance_unconstrained"], dtype=torch.float64, device=x.device)
     pd = bool(lap.get("positive_definite", True))
     P = x.numel()
     phys = {k: v.detach() for k, v in problem.param.to_physical(x).items()}
@@ -1051,7 +1052,7 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
     dof = max(n_used - P, 1)
     budget.update(chi2_per_dof=c_fit / dof, chi2_per_dof_corrected=c_cor / dof, dof=dof)
     f, f_range = 0.0, [0.0, 0.0]
-    zero = torch.zeros(P, P, dtype=torch.float64)
+    zero = torch.zeros(P, P, dtype=torch.float64, device=x.device)
     shares: dict[str, Tensor] = {}  # discrepancy model -> its covariance share D (P, P)
     applicable = problem.loss.rho == "squared" and problem.loss.residual in ("linear", "log")
     robust = problem.loss.rho in ROBUST_RHOS and problem.loss.residual in ("linear", "log") and pd
@@ -1090,8 +1091,8 @@ def error_budget(problem: FitProblem, x: Tensor, lap: dict | None = None, *, ref
     share = shares.get("sandwich" if robust else discrepancy, zero)
     if expansion is None and expand:
         expansion = phase_expansion(problem, x, term, reference=reference, options=options)
-    e = torch.zeros(P, dtype=torch.float64) if expansion is None else expansion["e"].to(torch.float64)
-    cov_exp = (expansion["covariance"].to(torch.float64)
+    e = torch.zeros(P, dtype=torch.float64, device=x.device) if expansion is None else expansion["e"].to(dtype=torch.float64, device=x.device)
+    cov_exp = (expansion["covariance"].to(dtype=torch.float64, device=x.device)
                if expansion is not None and expansion.get("covariance") is not None and pd else None)
 
     def phase_added(cov: Tensor) -> tuple[Tensor, Tensor | None]:

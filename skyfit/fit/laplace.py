@@ -139,7 +139,7 @@ def covariance_summary(problem: FitProblem, x: Tensor, cov_x: Tensor, pd: bool =
     ``covariance`` (physical), ``covariance_unconstrained``, ``interval68``, ``interval95``, ``derived``.
     """
     x64 = x.detach().to(torch.float64)
-    cov_x = cov_x.to(torch.float64)
+    cov_x = cov_x.to(dtype=torch.float64, device=x.device)
     J = transform_jacobian(problem, x64)
     cov_v = J[:, None] * cov_x * J[None, :]
     s_x = torch.sqrt(torch.clamp_min(torch.diagonal(cov_x), 0.0))

@@ -762,12 +762,13 @@ def lens_from_sun(problem: "PhotoProblem", x: torch.Tensor, projection: str) -> 
         return None, f"{projection} lens"
     with torch.no_grad():
         phys = problem.param.to_physical(x)
-        tn, te = (phys[n].reshape(-1)[0].to(torch.float64) for n in ("camera_tilt_north", "camera_tilt_east"))
-        s = problem.sun_vectors(phys, 0).reshape(-1, 3)[0].to(torch.float64)
+        # a handful of numbers: on the CPU whatever the problem's device (the sun datum lives there)
+        tn, te = (phys[n].reshape(-1)[0].to(dtype=torch.float64, device="cpu") for n in ("camera_tilt_north", "camera_tilt_east"))
+        s = problem.sun_vectors(phys, 0).reshape(-1, 3)[0].to(dtype=torch.float64, device="cpu")
         # the tilt undone: tilt_directions(I) has the rotated axes R e_j as rows, so it applied to s is R^T s
         c = tilt_directions(torch.eye(3, dtype=torch.float64), tn, te) @ s
         theta_s = float(torch.atan2(torch.hypot(c[0], c[1]), c[2]))
-        d = sun.direction.to(torch.float64)
+        d = sun.direction.to(dtype=torch.float64, device="cpu")
         theta_p = float(torch.atan2(torch.hypot(d[0], d[1]), d[2]))
     miss = math.degrees(theta_s - theta_p)
     lever = theta_p * ((math.pi / 2) ** 2 - theta_p**2)

@@ -88,13 +88,14 @@ def plot_observation(obs: Observation, pred: Tensor, out_dir: Path, stem: str) -
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    meas = obs.values[obs.mask].detach().cpu().double()
+    mask = obs.mask.detach().cpu()  # the observation may live on CUDA; its metadata (pixel_index, ring) on the CPU
+    meas = obs.values.detach().cpu().double()[mask]
     mod = pred.detach().cpu().double()
     base = f"{stem}_{sanitize(obs.name)}"
     written = []
     if "image_shape" in obs.metadata and "pixel_index" in obs.metadata:
         h, w = obs.metadata["image_shape"]
-        idx = torch.as_tensor(obs.metadata["pixel_index"])[obs.mask].numpy()
+        idx = torch.as_tensor(obs.metadata["pixel_index"]).cpu()[mask].numpy()
 
         def img(vals):
             a = np.full(h * w, np.nan)
@@ -103,7 +104,7 @@ def plot_observation(obs: Observation, pred: Tensor, out_dir: Path, stem: str) -
 
         y_m, y_p = luminance(meas, obs), luminance(mod, obs)
         rel = (y_p - y_m) / np.where(y_m > 0, y_m, np.nan)
-        resid = ((mod - meas) / obs.sigma[obs.mask].detach().cpu().double()).mean(-1).numpy()
+        resid = ((mod - meas) / obs.sigma.detach().cpu().double()[mask]).mean(-1).numpy()
         fig, axes = plt.subplots(2, 2, figsize=(9, 8))
         lo = np.nanpercentile(np.log10(np.maximum(y_m, 1e-12)), 1)
         hi = np.nanpercentile(np.log10(np.maximum(y_m, 1e-12)), 99.5)
@@ -127,7 +128,7 @@ def plot_observation(obs: Observation, pred: Tensor, out_dir: Path, stem: str) -
         written.append(str(save_fig(fig, out_dir / f"{base}_maps.png")))
     if obs.kind == "spectral" and "ring" in obs.metadata:
         lam = obs.wavelengths.detach().cpu().numpy()
-        rings = torch.as_tensor(obs.metadata["ring"])[obs.mask].numpy()
+        rings = torch.as_tensor(obs.metadata["ring"]).cpu()[mask].numpy()
         n = meas.shape[0]
         cols = int(math.ceil(math.sqrt(n)))
         rows = int(math.ceil(n / cols))
@@ -157,8 +158,8 @@ def plot_observation(obs: Observation, pred: Tensor, out_dir: Path, stem: str) -
         a1.set_ylabel("RMSE [mW/(m^2 sr nm)]")
         a1.set_title("RMSE per ring")
         sun = obs.sun.detach().cpu().double()
-        sun = sun[obs.mask.cpu()] if sun.ndim == 2 else sun
-        ang = torch.rad2deg(torch.arccos(torch.clamp((obs.directions[obs.mask].detach().cpu().double() * sun).sum(-1), -1, 1)))
+        sun = sun[mask] if sun.ndim == 2 else sun
+        ang = torch.rad2deg(torch.arccos(torch.clamp((obs.directions.detach().cpu().double()[mask] * sun).sum(-1), -1, 1)))
         a2.scatter(ang.numpy(), rel.mean(-1) * 100, c=rings, cmap="viridis", s=12)
         a2.axhline(0, color="k", lw=0.5)
         a2.set_xlabel("angle to the sun [deg]")

@@ -91,7 +91,7 @@ def write_plots(out_dir: Path, chain: np.ndarray, diag: dict, phys: dict, names:
         fig, ax = plt.subplots(figsize=(5.5, 4.8))
         if "image_shape" in o.metadata and "pixel_index" in o.metadata:
             h, w = o.metadata["image_shape"]
-            idx = torch.as_tensor(o.metadata["pixel_index"])[o.mask].numpy()
+            idx = torch.as_tensor(o.metadata["pixel_index"]).cpu()[o.mask.cpu()].numpy()
             a = np.full(h * w, np.nan)
             a[idx] = rel.mean(-1)
             im = ax.imshow(a.reshape(h, w), cmap="viridis")
