@@ -95,6 +95,11 @@ class Quadrature:
             [0, pi], phi in [0, 2 pi] (2017: 16 x 32).
         irradiance_theta, irradiance_phi: midpoint rule over the upper hemisphere for the
             indirect irradiance, theta in [0, pi/2] (2017: 16 x 64).
+        ray_rule: the rule of the two view-ray integrals (single scattering and Delta S), on
+            ``single_samples + 1`` and ``multiple_samples + 1`` nodes: ``"trapezoid"`` (2017's,
+            equal steps) or ``"gauss"`` (Gauss-Legendre, whose nodes crowd at both ends of the ray,
+            where a ground observer's ray crosses the aerosol layer and a downward ray ends in it:
+            :func:`ray_nodes`).
     """
 
     transmittance_samples: int = 500
@@ -104,12 +109,36 @@ class Quadrature:
     density_phi: int = 32
     irradiance_theta: int = 16
     irradiance_phi: int = 64
+    ray_rule: str = "trapezoid"
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            if not isinstance(v, int) or v < 1:
+            if f.name == "ray_rule":
+                if v not in RAY_RULES:
+                    raise ValueError(f"Quadrature.ray_rule must be one of {', '.join(RAY_RULES)}, got {v!r}")
+            elif not isinstance(v, int) or v < 1:
                 raise ValueError(f"Quadrature.{f.name} must be a positive integer, got {v!r}")
+
+
+RAY_RULES = ("trapezoid", "gauss")
+
+
+def ray_nodes(n: int, rule: str, dtype, device) -> tuple[Tensor, Tensor]:
+    """n + 1 nodes on [0, 1] and their weights for a view ray's integral (:attr:`Quadrature.ray_rule`).
+
+    The trapezoid's equal steps under-resolve an exponential layer much thinner than the ray: a ground
+    observer's ray at 10 deg elevation runs ~340 km to the top in 50 steps of 6.8 km while it leaves a
+    1.2 km aerosol layer within ~7 km, and the trapezoid's sum of a decay exp(-d/L) in steps h is
+    (h/2) coth(h/2L) times the integral (+8 % at h = L, +31 % at h = 2L). Gauss-Legendre's nodes crowd at
+    both ends (the first at ~1.4/(n+1)^2 of the ray, 0.2 km there), where such layers sit."""
+    if rule == "trapezoid":
+        return _trapezoid(n, dtype, device)
+    import numpy as np  # Gauss-Legendre nodes: numpy's leggauss (Golub-Welsch), mapped from [-1, 1]
+
+    t, w = np.polynomial.legendre.leggauss(n + 1)
+    return (torch.as_tensor(0.5 * (t + 1.0), dtype=dtype, device=device),
+            torch.as_tensor(0.5 * w, dtype=dtype, device=device))
 
 
 @dataclasses.dataclass
@@ -455,7 +484,7 @@ def _ray_samples(ctx: _Ctx, rays, quad: Quadrature, i: int, j: int) -> tuple[Ten
     """(d, r_d, mu_d), each (G, S): the Delta S samples of view rays i:j (as :func:`_group_ray_samples`)."""
     atm = ctx.atm
     r, mu, g = rays[0][i:j], rays[1][i:j], rays[2][i:j]
-    x, _ = _trapezoid(quad.multiple_samples, atm.dtype, atm.device)
+    x, _ = ray_nodes(quad.multiple_samples, quad.ray_rule, atm.dtype, atm.device)
     d = _distance_to_boundary(r, mu, g, atm) * x
     r_d = torch.clamp(torch.sqrt(torch.clamp_min(d * d + 2.0 * r * mu * d + r * r, 0.0)), atm.bottom_radius, atm.top_radius)
     mu_d = torch.clamp((r * mu + d) / r_d, -1.0, 1.0)
@@ -545,7 +574,7 @@ def _single_scattering_table(ctx, geo: _Geometry, quad: Quadrature, chunk_bytes:
     shape = geo.texels.r.shape
     r, mu, g, mus, nu = geo.rays
     n_t = mus.shape[1]
-    x, w = _trapezoid(quad.single_samples, dtype, device)
+    x, w = ray_nodes(quad.single_samples, quad.ray_rule, dtype, device)
     n_w = atm.wavelengths.shape[0]
 
     def fn(i: int, j: int) -> Tensor:
@@ -736,7 +765,7 @@ def _view_transmittance(ctx: _Ctx, geo: _Geometry, quad: Quadrature) -> Tensor:
     """
     atm = ctx.atm
     r, mu, g, mus, nu = geo.rays
-    x, w = _trapezoid(quad.multiple_samples, atm.dtype, atm.device)
+    x, w = ray_nodes(quad.multiple_samples, quad.ray_rule, atm.dtype, atm.device)
     dist = _distance_to_boundary(r, mu, g, atm)
     d = dist * x
     col_v, _, _ = _segment_columns(ctx, r.expand_as(d), mu.expand_as(d), d, g.expand_as(d))
