@@ -585,3 +585,30 @@ def test_refreshes_from_a_known_curvature_end_where_lbfgs_does(sky4, monkeypatch
         print(f"L-BFGS {a.loss:.10g}, curved {b.loss:.10g}, apart {float(((b.x - a.x).abs() / s_x).max()):.2g} sigma")
         assert float(((b.x - a.x).abs() / s_x).max()) < 5e-3 and b.loss <= a.loss * (1 + 1e-9)
     assert p1.n_evaluations + c1.n_evaluations < p0.n_evaluations + c0.n_evaluations
+
+
+def test_the_ray_rule_setting_reaches_the_tables_and_the_result():
+    """``fit.ray_rule: gauss`` gives the model Gauss-Legendre view rays in its Bruneton tables (equal to a precompute
+    with that quadrature, unlike 2017's trapezoid), is written to the result's model and read back from it; an
+    unknown rule is one FitError naming the key."""
+    from skyfit.atmosphere import load_atmosphere
+    from skyfit.fit.problem import make_model
+    from skyfit.fit.results import model_from_result
+    from skyfit.scattering.bruneton_tables import TableSizes
+    from skyfit.scattering.multiple import Quadrature, precompute
+
+    sizes = [32, 8, 8, 4, 4, 16, 4, 4]
+    s = fit_settings({"ray_rule": "gauss", "orders": 2, "multiple": "bruneton", "table_sizes": sizes})
+    model = make_model(s)
+    assert model.settings()["ray_rule"] == "gauss" and "ray_rule" not in make_model(fit_settings({"orders": 2, "multiple": "bruneton"})).settings()
+    atm = load_atmosphere("earth", [450.0, 650.0])
+    got = model.tables(atm).multiple
+    with torch.no_grad():
+        want = precompute(atm, orders=2, sizes=TableSizes(*sizes), quadrature=Quadrature(ray_rule="gauss"), progress=False).multiple
+        trap = precompute(atm, orders=2, sizes=TableSizes(*sizes), progress=False).multiple
+    torch.testing.assert_close(got, want, rtol=0, atol=0)
+    assert float((got - trap).abs().max()) > 1e-3 * float(trap.abs().max())
+    back = model_from_result({"integrator": {"name": "chapman"}, "model": model.settings()})
+    assert back.ray_rule == "gauss" and back.table_sizes == tuple(sizes)
+    with pytest.raises(FitError, match="fit.ray_rule"):
+        fit_settings({"ray_rule": "simpson"})

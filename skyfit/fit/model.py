@@ -59,6 +59,8 @@ class SkyModel:
         table_sizes: Bruneton :class:`~skyfit.scattering.bruneton_tables.TableSizes` fields as
             a tuple (transmittance mu, r, irradiance mu_s, r, scattering r, mu, mu_s, nu);
             None = a reduced set that precomputes in seconds on a CPU.
+        ray_rule: the Bruneton tables' view-ray rule (:attr:`skyfit.scattering.multiple.Quadrature.ray_rule`):
+            2017's ``trapezoid`` or ``gauss``, which resolves a thin aerosol layer with the same nodes.
     """
 
     integrator: OpticalDepthIntegrator
@@ -72,6 +74,7 @@ class SkyModel:
     lut_directions: int = 64
     lut_samples: int = 20
     table_sizes: tuple[int, ...] | None = None
+    ray_rule: str = "trapezoid"
     spacing: str = "uniform"
     """Single scattering: view-ray nodes ``uniform`` in distance or ``geometric``
     (:func:`skyfit.scattering.single.geometric_nodes`; :func:`skyfit.render`'s default)."""
@@ -90,6 +93,16 @@ class SkyModel:
         self.lut_size = tuple(int(v) for v in self.lut_size)  # type: ignore[assignment]
         if self.table_sizes is not None:
             self.table_sizes = tuple(int(v) for v in self.table_sizes)
+        from ..scattering.multiple import RAY_RULES
+
+        if self.ray_rule not in RAY_RULES:
+            raise FitError(f"ray_rule must be one of {', '.join(RAY_RULES)}, got {self.ray_rule!r}")
+
+    def quadrature(self):
+        """The Bruneton precomputation's sample counts: 2017's, with this model's :attr:`ray_rule`."""
+        from ..scattering.multiple import Quadrature
+
+        return Quadrature(ray_rule=self.ray_rule)
 
     @property
     def lagged(self) -> bool:
@@ -115,7 +128,8 @@ class SkyModel:
         from ..scattering.multiple import precompute
 
         sizes = TableSizes(*(self.table_sizes or self.REDUCED_TABLES))
-        return precompute(atm, orders=self.orders, sizes=sizes, progress=False)  # once per loss evaluation: no bar
+        return precompute(atm, orders=self.orders, sizes=sizes, quadrature=self.quadrature(),
+                          progress=False)  # once per loss evaluation: no bar
 
     def renderer(self, atm: Atmosphere, altitude_m: float = 0.0, tables=None) -> Renderer:
         """A function ``(directions (N, 3), sun (3,) or (N, 3)) -> radiance (N, W)`` for ``atm``.
@@ -158,6 +172,8 @@ class SkyModel:
                 out.update(lut_size=list(self.lut_size), lut_directions=self.lut_directions, lut_samples=self.lut_samples)
             else:
                 out["table_sizes"] = list(self.table_sizes or self.REDUCED_TABLES)
+                if self.ray_rule != "trapezoid":
+                    out["ray_rule"] = self.ray_rule
         return out
 
 

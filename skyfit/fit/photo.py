@@ -1530,7 +1530,8 @@ def freeze_tables(problem: FitProblem, x: torch.Tensor, bruneton: "SkyModel | No
                 atm = subs[0] if joint is None else joint
                 narrow = MS_TABLE_DTYPE is not None and MS_TABLE_DTYPE != atm.wavelengths.dtype
                 tables = precompute(atm.to(dtype=MS_TABLE_DTYPE) if narrow else atm, orders=bruneton.orders,
-                                    sizes=TableSizes(*(bruneton.table_sizes or bruneton.REDUCED_TABLES)), progress=False)
+                                    sizes=TableSizes(*(bruneton.table_sizes or bruneton.REDUCED_TABLES)),
+                                    quadrature=bruneton.quadrature(), progress=False)
                 parts = [tables] if joint is None else split_tables(tables, subs)
                 if narrow:
                     parts = [_widened(t, sub) for t, sub in zip(parts, subs)]
@@ -2350,7 +2351,8 @@ def photo_result(scene: PhotoScene, blocks: BlockImage, prep, problem, res, conf
                          laplace=laplace)
     if getattr(problem, "bruneton", None) is not None:  # live single scattering + Bruneton's orders, frozen per fit
         ms = problem.bruneton[0]
-        full = {"orders": ms.orders, "multiple": "bruneton", "table_sizes": list(ms.table_sizes or ms.REDUCED_TABLES)}
+        full = {"orders": ms.orders, "multiple": "bruneton", "table_sizes": list(ms.table_sizes or ms.REDUCED_TABLES),
+                **({"ray_rule": ms.ray_rule} if ms.ray_rule != "trapezoid" else {})}
         result["settings"].update(orders=ms.orders, multiple="bruneton")
         result["model"].update(full, multiple_frozen="orders >= 2 from Bruneton's tables, refreshed per fit (fit.photo.lagged_fit)")
         result["integrator"].update(full)

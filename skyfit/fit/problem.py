@@ -59,6 +59,8 @@ class FitSettings:
     lut_directions: int = 64
     lut_samples: int = 20
     table_sizes: list[int] | None = None
+    ray_rule: str = "trapezoid"
+    """Bruneton tables' view-ray rule: ``trapezoid`` (2017) or ``gauss`` (skyfit.scattering.multiple.ray_nodes)."""
     view_samples: int = 16
     rule: str = "gauss"
     starts: int = FitOptions.starts
@@ -244,6 +246,10 @@ def fit_settings(section: dict | None, overrides: dict | None = None, where: str
         raise FitError(f"fit.sigma_reference must be [R, MU, MU_S, NU, ORDERS], integers >= 2, got {s.sigma_reference!r}")
     if s.dtype not in DTYPES:
         raise FitError(f"dtype must be float32 or float64, got {s.dtype!r}")
+    from ..scattering.multiple import RAY_RULES
+
+    if s.ray_rule not in RAY_RULES:
+        raise FitError(f"fit.ray_rule must be one of {', '.join(RAY_RULES)}, got {s.ray_rule!r}")
     return s
 
 
@@ -251,7 +257,7 @@ def make_model(s: FitSettings) -> SkyModel:
     """The renderer of a fit's settings (integrator spec, view integral, multiple scattering)."""
     return SkyModel(integrator_from_spec(s.integrator), orders=s.orders, view_samples=s.view_samples, rule=s.rule,
                     multiple=s.multiple, lut_size=s.lut_size, lut_directions=s.lut_directions,
-                    lut_samples=s.lut_samples, table_sizes=s.table_sizes)
+                    lut_samples=s.lut_samples, table_sizes=s.table_sizes, ray_rule=s.ray_rule)
 
 
 def with_noise_model(obs: Observation, relative: float, absolute: float) -> Observation:

@@ -148,6 +148,7 @@ class SynthSettings:
         wavelengths: spectral grid of the render, ``START:STOP:STEP``. [nm]
         orders: scattering orders (4: Bruneton multiple scattering; 1: single scattering, for tests).
         table_sizes: Bruneton table sizes (8 integers, :class:`~skyfit.scattering.bruneton_tables.TableSizes`).
+        ray_rule: the tables' view-ray rule (:attr:`skyfit.scattering.multiple.Quadrature.ray_rule`).
         zenith_step_deg, azimuth_step_deg: spacing of the sky grid in view zenith and azimuth from
             the sun's vertical plane; pixels interpolate it bilinearly. [deg]
         max_zenith_deg: the grid's largest view zenith (a tilted camera sees a little below the horizon). [deg]
@@ -157,6 +158,7 @@ class SynthSettings:
     wavelengths: str = "380:760:20"
     orders: int = 4
     table_sizes: tuple[int, ...] = TIGHT_TABLES
+    ray_rule: str = "trapezoid"
     zenith_step_deg: float = 0.25
     azimuth_step_deg: float = 0.5
     max_zenith_deg: float = 93.0
@@ -165,7 +167,7 @@ class SynthSettings:
     def key(self) -> dict:
         return {"wavelengths": self.wavelengths, "orders": self.orders, "table_sizes": list(self.table_sizes),
                 "zenith_step_deg": self.zenith_step_deg, "azimuth_step_deg": self.azimuth_step_deg,
-                "max_zenith_deg": self.max_zenith_deg}
+                "max_zenith_deg": self.max_zenith_deg, **({"ray_rule": self.ray_rule} if self.ray_rule != "trapezoid" else {})}
 
 
 TEST_SETTINGS = SynthSettings(wavelengths="380:760:40", orders=1, zenith_step_deg=1.0, azimuth_step_deg=2.0)
@@ -374,8 +376,8 @@ def _render_grid(values: dict, sun_zenith_deg: float, s: SynthSettings, sun_dist
     atm = make_atmosphere(values, s.wavelengths, config, sun_distance_au)
     integ = make_model(FitSettings()).integrator
     if s.orders > 1:
-        model = SkyModel(integ, orders=s.orders, multiple="bruneton", table_sizes=tuple(s.table_sizes))
-        tkey = _cache_key(akey, s.orders, list(s.table_sizes))
+        model = SkyModel(integ, orders=s.orders, multiple="bruneton", table_sizes=tuple(s.table_sizes), ray_rule=s.ray_rule)
+        tkey = _cache_key(akey, s.orders, list(s.table_sizes), s.ray_rule)
         if tkey not in _TABLE_CACHE:
             with torch.no_grad():
                 _TABLE_CACHE[tkey] = model.tables(atm)
