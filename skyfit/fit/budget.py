@@ -876,7 +876,7 @@ def phase_expansion(problem: FitProblem, x: Tensor, term: NumericalTerm, *, refe
     mapped["mie_g"] = asym
     mapped = {n: inside_bounds(n, v) for n, v in mapped.items()}
     try:
-        x_new = p.to_unconstrained(mapped, torch.float64)
+        x_new = p.to_unconstrained(mapped, torch.float64, x.device)
     except FitError:  # the asymmetry beyond mie_g's range cannot happen (|asym| < 1); name it if it does
         raise FitError(f"the two-term refit's values lie outside the one-term parameters' ranges: {mapped}") from None
     with torch.no_grad():

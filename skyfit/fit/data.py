@@ -209,7 +209,8 @@ class Observation:
                 xx, yy = view.pixel_grid(dtype)
                 radius = (torch.hypot(xx - view.cx.to(dtype), yy - view.cy.to(dtype)) / view.r90.to(dtype)).reshape(-1)
         else:
-            vec = torch.as_tensor(view, dtype=dtype)
+            # on the CPU as every other argument (values and sigma are): prepare() moves the observation to the fit's device
+            vec = torch.as_tensor(view.detach().cpu() if isinstance(view, torch.Tensor) else view, dtype=dtype)
             if values.ndim != 2 or vec.shape != (values.shape[0], 3):
                 raise DataError(f"{where}: directions of shape {tuple(vec.shape)} do not fit radiance of shape "
                                 f"{tuple(values.shape)}: need (N, 3) and (N, C)")
@@ -267,7 +268,8 @@ class Observation:
                 raise DataError(f"{where}: {C} channels without wavelengths; give wavelengths for spectral data")
             kind, channels, lam = "rgb", ("R", "G", "B"), None
         else:
-            lam = torch.as_tensor(np.asarray(wavelengths, dtype=np.float64)).to(dtype).reshape(-1)
+            lam = torch.as_tensor(np.asarray(wavelengths.detach().cpu() if isinstance(wavelengths, torch.Tensor) else wavelengths,
+                                             dtype=np.float64)).to(dtype).reshape(-1)
             if lam.numel() != C:
                 raise DataError(f"{where}: {lam.numel()} wavelengths for {C} channels")
             kind, channels = "spectral", tuple(f"L{float(v):g}" for v in lam)
