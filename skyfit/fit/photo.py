@@ -89,17 +89,17 @@ CALIBRATED_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "su
 known (a file without ``saturation_red`` / ``saturation_blue`` holds them at 1, a colorimetric camera)."""
 PHOTO_TABLES = (64, 32, 16, 8, 16, 64, 16, 8)
 """Bruneton table sizes of a photo fit's multiple-scattering factor (transmittance mu, r, irradiance mu_s, r,
-scattering r, mu, mu_s, nu), built on :data:`MS_WAVELENGTH_NODES` wavelengths. What matters is the scattering
-tables' mu: on synthetic case 6 (AOD 0.3, g 0.82, sun at 23 deg) multiple over live single scattering at 30-60 deg
-elevation is 2.66 with 48 mu samples, 1.99 with 64, 1.62 with 96 (r, transmittance and irradiance sizes change it by
-< 1 %), so the earlier (128, 32, 32, 8, 12, 48, 16, 8) put the factor 20 % above the generator's and biased hazy
-skies low; these take the generator's scattering grid (its transmittance and irradiance are larger, its
-wavelengths 20, its single scattering from the tables) and share its error in mu (docs/photos.md, "Speed")."""
+scattering r, mu, mu_s, nu), built on :data:`MS_WAVELENGTH_NODES` wavelengths, with Gauss-Legendre view rays (``ray_rule: gauss`` in
+:data:`PHOTO_SETTINGS`). On a hazy sky (AOD 0.3, g 0.82, sun at 23 deg) 2017's 50-interval trapezoid along the view
+ray put orders >= 2 1.43-2.18x above a converged reference (mu 128, 200 Gauss nodes, 32 x 64 density directions)
+at every elevation; the same 51 nodes by Gauss-Legendre 1.01-1.05x away from the sun, 1.17x at the zenith (the
+16 x 32 density directions) and 1.43-1.58x within 25 deg of the sun (the 64 mu samples; 128 give 1.02-1.11x).
+The generator shares these sizes and that rule (docs/photos.md, "The view ray's rule")."""
 PHOTO_CLUSTERS = 24
 """Sky regions of a photo fit's discrepancy term (``fit.sigma_clusters``; :func:`skyfit.fit.budget.robust_sandwich_share`):
 8 scattering-angle x 3 view-zenith bins of ~120 blocks each, twice the 12 free parameters of a photo fit (the
 sandwich needs G - 1 >= P; its variances' relative spread is about sqrt(2 / (G - 1)), 0.3)."""
-PHOTO_SETTINGS = {"loss": "cauchy", "orders": 4, "multiple": "bruneton", "table_sizes": list(PHOTO_TABLES),
+PHOTO_SETTINGS = {"loss": "cauchy", "orders": 4, "multiple": "bruneton", "table_sizes": list(PHOTO_TABLES), "ray_rule": "gauss",
                   "starts": 1, "adam_steps": 30, "max_iter": 80, "sigma_clusters": PHOTO_CLUSTERS,
                   "initial": {"mie_aod_550": 0.1, "mie_angstrom_alpha": 1.0, "mie_g": 0.7}}
 """Fit settings of a photo unless the config's ``fit:`` section or keywords say otherwise: a robust loss

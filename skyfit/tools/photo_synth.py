@@ -137,7 +137,9 @@ The Sigma is a Foveon (stacked) sensor: every pixel measures all three channels,
 TIGHT_TABLES = (256, 64, 32, 8, 16, 64, 16, 8)
 """Bruneton table sizes of the generator: transmittance 256 x 64 (2017's), irradiance 32 x 8,
 scattering 16 x 64 x 16 x 8 (r, mu, mu_s, nu) -- twice a fit's reduced tables
-(:attr:`SkyModel.REDUCED_TABLES` = 64 x 16, 32 x 8, 8 x 32 x 8 x 4) in every scattering axis."""
+(:attr:`SkyModel.REDUCED_TABLES` = 64 x 16, 32 x 8, 8 x 32 x 8 x 4) in every scattering axis. With Gauss-Legendre
+view rays (:attr:`SynthSettings.ray_rule`): 2017's trapezoid put a hazy sky's orders >= 2 1.4-2.2x too high
+(docs/photos.md, "The view ray's rule")."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,7 +160,7 @@ class SynthSettings:
     wavelengths: str = "380:760:20"
     orders: int = 4
     table_sizes: tuple[int, ...] = TIGHT_TABLES
-    ray_rule: str = "trapezoid"
+    ray_rule: str = "gauss"
     zenith_step_deg: float = 0.25
     azimuth_step_deg: float = 0.5
     max_zenith_deg: float = 93.0
@@ -167,7 +169,7 @@ class SynthSettings:
     def key(self) -> dict:
         return {"wavelengths": self.wavelengths, "orders": self.orders, "table_sizes": list(self.table_sizes),
                 "zenith_step_deg": self.zenith_step_deg, "azimuth_step_deg": self.azimuth_step_deg,
-                "max_zenith_deg": self.max_zenith_deg, **({"ray_rule": self.ray_rule} if self.ray_rule != "trapezoid" else {})}
+                "max_zenith_deg": self.max_zenith_deg, "ray_rule": self.ray_rule}
 
 
 TEST_SETTINGS = SynthSettings(wavelengths="380:760:40", orders=1, zenith_step_deg=1.0, azimuth_step_deg=2.0)
