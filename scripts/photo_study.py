@@ -66,6 +66,13 @@ AEROSOL_NAMES = (("aod_550", "mie_aod_550"), ("angstrom_alpha", "mie_angstrom_al
 """RESULT.json aerosol keys and the fit's parameter names of the three scored values."""
 
 
+def _gains_true(truth: dict) -> list[float] | None:
+    """The camera's red and blue gains over green against CIE linear sRGB, from the first frame whose unclipped sky
+    gave them (the darkest frame of a bracket may have no sky above the noise: its factors are None)."""
+    k = next((f["linear_over_cie_rgb"] for f in truth["frames"] if f.get("linear_over_cie_rgb")), None)
+    return None if k is None else [v / k[1] for v in k[::2]]
+
+
 def score(truth: dict, result: dict) -> dict:
     """Fit vs truth of one case."""
     tp = truth["atmosphere"]["parameters"]
@@ -95,7 +102,7 @@ def score(truth: dict, result: dict) -> dict:
         "rmse_rel": result["metrics"]["rmse_rel"], "seconds": result["seconds"], "split": result["seconds_split"],
         "horizon_fraction": truth["obstacles"]["horizon_fraction"], "camera": truth["sensor"]["name"],
         "vignetting_rim": truth["vignetting"]["rim_value"], "vignetting_fit": cam.get("vignetting"),
-        "gains_true": [f / truth["frames"][0]["linear_over_cie_rgb"][1] for f in truth["frames"][0]["linear_over_cie_rgb"][::2]],
+        "gains_true": _gains_true(truth),
         "gains_fit": [cam.get("gain_red"), cam.get("gain_blue")], "saturation_fit": [cam.get("saturation_red"), cam.get("saturation_blue")],
         "ms": {k: result.get("convergence", {}).get(k) for k in ("ms_refreshes", "ms_table_builds", "ms_factor_change")},
         "notes": result["notes"],
