@@ -130,7 +130,7 @@ def ray_nodes(n: int, rule: str, dtype, device) -> tuple[Tensor, Tensor]:
     The trapezoid's equal steps under-resolve an exponential layer much thinner than the ray: a ground
     observer's ray at 10 deg elevation runs ~340 km to the top in 50 steps of 6.8 km while it leaves a
     1.2 km aerosol layer within ~7 km, and the trapezoid's sum of a decay exp(-d/L) in steps h is
-    (h/2) coth(h/2L) times the integral (+8 % at h = L, +31 % at h = 2L). Gauss-Legendre's nodes crowd at
+    (h/2L) coth(h/2L) times the integral (+8 % at h = L, +31 % at h = 2L). Gauss-Legendre's nodes crowd at
     both ends (the first at ~1.4/(n+1)^2 of the ray, 0.2 km there), where such layers sit."""
     if rule == "trapezoid":
         return _trapezoid(n, dtype, device)
