@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -612,3 +613,23 @@ def test_the_ray_rule_setting_reaches_the_tables_and_the_result():
     assert back.ray_rule == "gauss" and back.table_sizes == tuple(sizes)
     with pytest.raises(FitError, match="fit.ray_rule"):
         fit_settings({"ray_rule": "simpson"})
+
+
+def test_an_unknown_ray_rule_in_a_config_is_one_line_and_exit_2(tmp_path, capsys):
+    """``fit.ray_rule: simpson`` through the CLI: one line naming the key, exit status 2, no RESULT.json."""
+    import yaml
+
+    from skyfit.atmosphere import load_yaml
+
+    cfg = load_yaml(Path(__file__).resolve().parents[1] / "skyfit" / "configs" / "earth.yaml")
+    cfg["fit"] = {"ray_rule": "simpson", "orders": 2, "multiple": "bruneton"}
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(cfg))
+    assert main(["render", "earth", "--out", str(tmp_path / "sky.exr"), "--sun-zenith", "40", "--size", "8"]) == 0
+    capsys.readouterr()
+    try:
+        rc = main(["fit", str(tmp_path / "sky.exr"), "--config", str(tmp_path / "bad.yaml"), "--out", str(tmp_path / "r.json")])
+    except SystemExit as e:
+        rc = e.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "fit.ray_rule" in err[0] and "simpson" in err[0], err
+    assert not (tmp_path / "r.json").exists()
