@@ -210,6 +210,13 @@ def test_a_fit_from_a_known_curvature_reaches_the_lbfgs_optimum_in_fewer_gradien
         torch.testing.assert_close(cw.x, lb.x, rtol=0, atol=0.02 * float(s_x.min()))
     assert curved(prob, start, -cov) is None  # not positive definite
     assert curved(prob, start, cov, iterations=1) is None  # not there in one step
+    # there on its last allowed iteration (scipy's status 1 with the gradient under tol): it stands, as the same run
+    # with iterations to spare; one iteration fewer is not there
+    k = cv.convergence["iterations"]
+    assert k > 1
+    last = curved(prob, start, cov, iterations=k)
+    assert last is not None and torch.equal(last.x, cv.x)
+    assert curved(prob, start, cov, iterations=k - 1) is None
     ref = reference_problem(prob, _fine())
     rs = refit_shift(prob, res.x, ref, res.x, s_x, iterations=1, options=TIGHT, cov_x=-cov)
     rn = refit_shift(prob, res.x, ref, res.x, s_x, iterations=1, options=TIGHT, cov_x=cov)

@@ -509,7 +509,10 @@ def curved(problem: FitProblem, x0: Tensor, cov_x: Tensor, tol: float = CURVED_T
     with np.errstate(all="ignore"):
         out = scipy.optimize.minimize(fun, np.zeros(x0.numel()), jac=True, method="BFGS",
                                       options={"gtol": tol, "norm": 2, "maxiter": iterations})
-    if not out.success or failed or not math.isfinite(float(out.fun)):
+    # scipy flags a run that reaches gtol on its last allowed iteration as out of iterations (status 1): its
+    # whitened gradient is under tol all the same, and it stands (held-out synthetic case 16: |g| 0.0042 after 30)
+    reached = out.success or (out.status == 1 and float(np.linalg.norm(out.jac)) <= tol)
+    if not reached or failed or not math.isfinite(float(out.fun)):
         return None
     x = to_x(out.x).detach()
     f = float(out.fun) / n
