@@ -277,3 +277,34 @@ def test_suite_plan_spreads_projections_brackets_aod_and_sun():
     for a, b in zip(plan[::2], plan[1::2]):
         assert all(a[k] == b[k] for k in ("aod_550", "angstrom_alpha", "mie_g", "elevation_m"))
         assert a["sun_zenith_deg"] != b["sun_zenith_deg"]
+
+
+def test_the_generators_tables_use_its_density_directions():
+    """The sky grid's multiple scattering is that of Bruneton tables built with the settings' density directions (the
+    generator's finer Delta J, 32 x 64 by default): equal to a render from tables precomputed directly with them, and
+    different from one with 2017's 16 x 32 (small tables and a coarse grid keep it fast)."""
+    from skyfit.fit.model import SkyModel
+    from skyfit.fit.problem import FitSettings, make_model
+    from skyfit.scattering.bruneton_tables import TableSizes
+    from skyfit.scattering.multiple import Quadrature, precompute
+
+    sizes = (32, 8, 8, 4, 4, 16, 4, 4)
+    values = {"mie_aod_550": 0.3, "mie_angstrom_alpha": 1.3, "mie_g": 0.8, "rayleigh_scale": 1.0}
+    base = dict(wavelengths="500:600:100", orders=2, table_sizes=sizes, zenith_step_deg=15.0, azimuth_step_deg=45.0,
+                max_zenith_deg=90.0)
+    assert ps.SynthSettings().density_directions == (32, 64)
+    fine = ps.sky_grid(values, 40.0, ps.SynthSettings(**base, density_directions=(8, 16)))
+    coarse = ps.sky_grid(values, 40.0, ps.SynthSettings(**base, density_directions=(4, 8)))
+    assert fine.info["density_directions"] == [8, 16]
+    atm = ps.make_atmosphere(values, "500:600:100")
+    tables = precompute(atm, orders=2, sizes=TableSizes(*sizes), progress=False,
+                        quadrature=Quadrature(ray_rule="gauss", density_theta=8, density_phi=16))
+    model = SkyModel(make_model(FitSettings()).integrator, orders=2, multiple="bruneton", table_sizes=sizes, ray_rule="gauss")
+    zen = torch.deg2rad(torch.arange(7, dtype=torch.float64) * 15.0)
+    daz = torch.deg2rad(torch.arange(5, dtype=torch.float64) * 45.0)
+    zz, aa = torch.meshgrid(zen, daz, indexing="ij")
+    sun = zenith_azimuth_to_enu(torch.tensor(math.radians(40.0), dtype=torch.float64), torch.tensor(0.0, dtype=torch.float64))
+    with torch.no_grad():
+        direct = model.renderer(atm, 0.0, tables=tables)(zenith_azimuth_to_enu(zz, aa).reshape(-1, 3), sun)
+    torch.testing.assert_close(fine.radiance, direct.reshape(7, 5, -1).clamp(min=0.0), rtol=1e-12, atol=0.0)
+    assert float(((coarse.radiance - fine.radiance).abs() / fine.radiance.clamp_min(1e-30)).max()) > 1e-4

@@ -134,12 +134,14 @@ CAMERA_SENSITIVITIES = {
 """Published camera RGB sensitivities shipped with colour-science: (source, Bayer?, EXIF make, model).
 The Sigma is a Foveon (stacked) sensor: every pixel measures all three channels, no mosaic."""
 
-TIGHT_TABLES = (256, 64, 32, 8, 16, 64, 16, 8)
+TIGHT_TABLES = (256, 64, 32, 8, 16, 128, 16, 8)
 """Bruneton table sizes of the generator: transmittance 256 x 64 (2017's), irradiance 32 x 8,
-scattering 16 x 64 x 16 x 8 (r, mu, mu_s, nu) -- twice a fit's reduced tables
-(:attr:`SkyModel.REDUCED_TABLES` = 64 x 16, 32 x 8, 8 x 32 x 8 x 4) in every scattering axis. With Gauss-Legendre
-view rays (:attr:`SynthSettings.ray_rule`): 2017's trapezoid put a hazy sky's orders >= 2 1.4-2.2x too high
-(docs/photos.md, "The view ray's rule")."""
+scattering 16 x 128 x 16 x 8 (r, mu, mu_s, nu) -- twice a fit's reduced tables
+(:attr:`SkyModel.REDUCED_TABLES` = 64 x 16, 32 x 8, 8 x 32 x 8 x 4) in every scattering axis, and twice a photo
+fit's mu (:data:`skyfit.fit.photo.PHOTO_TABLES`, 64): with 64 mu samples a hazy sky's orders >= 2 within 25 deg of
+the sun are 1.43-1.58x a converged reference's, with 128 1.02-1.11x (docs/multiple/hazy_convergence.json). With
+Gauss-Legendre view rays (:attr:`SynthSettings.ray_rule`): 2017's trapezoid put a hazy sky's orders >= 2 1.4-2.2x
+too high (docs/photos.md, "The view ray's rule")."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,6 +153,10 @@ class SynthSettings:
         orders: scattering orders (4: Bruneton multiple scattering; 1: single scattering, for tests).
         table_sizes: Bruneton table sizes (8 integers, :class:`~skyfit.scattering.bruneton_tables.TableSizes`).
         ray_rule: the tables' view-ray rule (:attr:`skyfit.scattering.multiple.Quadrature.ray_rule`).
+        density_directions: (theta, phi) incident directions of the tables' scattering density, Delta J
+            (:attr:`skyfit.scattering.multiple.Quadrature.density_theta`): 32 x 64, twice 2017's 16 x 32 in each,
+            which a photo fit keeps; 16 x 32 put a hazy sky's orders >= 2 at the zenith 1.17x a converged
+            reference's, 32 x 64 1.01x (docs/multiple/hazy_convergence.json).
         zenith_step_deg, azimuth_step_deg: spacing of the sky grid in view zenith and azimuth from
             the sun's vertical plane; pixels interpolate it bilinearly. [deg]
         max_zenith_deg: the grid's largest view zenith (a tilted camera sees a little below the horizon). [deg]
@@ -161,6 +167,7 @@ class SynthSettings:
     orders: int = 4
     table_sizes: tuple[int, ...] = TIGHT_TABLES
     ray_rule: str = "gauss"
+    density_directions: tuple[int, int] = (32, 64)
     zenith_step_deg: float = 0.25
     azimuth_step_deg: float = 0.5
     max_zenith_deg: float = 93.0
@@ -169,7 +176,8 @@ class SynthSettings:
     def key(self) -> dict:
         return {"wavelengths": self.wavelengths, "orders": self.orders, "table_sizes": list(self.table_sizes),
                 "zenith_step_deg": self.zenith_step_deg, "azimuth_step_deg": self.azimuth_step_deg,
-                "max_zenith_deg": self.max_zenith_deg, "ray_rule": self.ray_rule}
+                "max_zenith_deg": self.max_zenith_deg, "ray_rule": self.ray_rule,
+                "density_directions": list(self.density_directions)}
 
 
 TEST_SETTINGS = SynthSettings(wavelengths="380:760:40", orders=1, zenith_step_deg=1.0, azimuth_step_deg=2.0)
@@ -379,10 +387,16 @@ def _render_grid(values: dict, sun_zenith_deg: float, s: SynthSettings, sun_dist
     integ = make_model(FitSettings()).integrator
     if s.orders > 1:
         model = SkyModel(integ, orders=s.orders, multiple="bruneton", table_sizes=tuple(s.table_sizes), ray_rule=s.ray_rule)
-        tkey = _cache_key(akey, s.orders, list(s.table_sizes), s.ray_rule)
+        tkey = _cache_key(akey, s.orders, list(s.table_sizes), s.ray_rule, list(s.density_directions))
         if tkey not in _TABLE_CACHE:
+            from ..scattering.bruneton_tables import TableSizes
+            from ..scattering.multiple import Quadrature, precompute
+
+            quad = Quadrature(ray_rule=s.ray_rule, density_theta=s.density_directions[0],
+                              density_phi=s.density_directions[1])
             with torch.no_grad():
-                _TABLE_CACHE[tkey] = model.tables(atm)
+                _TABLE_CACHE[tkey] = precompute(atm, orders=s.orders, sizes=TableSizes(*s.table_sizes), quadrature=quad,
+                                                progress=False)
             while len(_TABLE_CACHE) > 2:
                 _TABLE_CACHE.popitem(last=False)
         tables = _TABLE_CACHE[tkey]
@@ -402,7 +416,9 @@ def _render_grid(values: dict, sun_zenith_deg: float, s: SynthSettings, sun_dist
         t_sun = sun_transmittance(atm, atm.bottom_radius, sun.reshape(1, 3))[0]
     radiance = rad.reshape(nz, na, -1).clamp(min=0.0)
     info = {"method": "bruneton" if s.orders > 1 else "single", "orders": s.orders,
-            "table_sizes": list(s.table_sizes) if s.orders > 1 else None, **model.integrator.settings(),
+            "table_sizes": list(s.table_sizes) if s.orders > 1 else None,
+            "density_directions": list(s.density_directions) if s.orders > 1 else None, "ray_rule": s.ray_rule,
+            **model.integrator.settings(),
             "wavelengths_nm": [float(v) for v in atm.wavelengths.tolist()]}
     return SkyGrid(radiance, s.zenith_step_deg, s.azimuth_step_deg, (atm.solar_irradiance * t_sun).detach(),
                    atm.wavelengths.detach(), float(sun_zenith_deg), time.process_time() - t0, info)
