@@ -615,6 +615,37 @@ def test_the_ray_rule_setting_reaches_the_tables_and_the_result():
         fit_settings({"ray_rule": "simpson"})
 
 
+
+def test_the_density_directions_setting_reaches_the_tables_and_the_result():
+    """``fit.density_directions: [8, 16]`` builds the model's Bruneton tables with that many incident directions of
+    the scattering density (equal to a precompute with that quadrature, unlike 2017's 16 x 32), is written to the
+    result's model and read back from it (2017's is not written); a malformed value is one FitError naming the key."""
+    from skyfit.atmosphere import load_atmosphere
+    from skyfit.fit.problem import make_model
+    from skyfit.fit.results import model_from_result
+    from skyfit.scattering.bruneton_tables import TableSizes
+    from skyfit.scattering.multiple import Quadrature, precompute
+
+    sizes = [32, 8, 8, 4, 4, 16, 4, 4]
+    base = {"ray_rule": "gauss", "orders": 2, "multiple": "bruneton", "table_sizes": sizes}
+    model = make_model(fit_settings({**base, "density_directions": [8, 16]}))
+    assert model.settings()["density_directions"] == [8, 16]
+    assert "density_directions" not in make_model(fit_settings(base)).settings()
+    atm = load_atmosphere("earth", [450.0, 650.0])
+    got = model.tables(atm).multiple
+    with torch.no_grad():
+        want = precompute(atm, orders=2, sizes=TableSizes(*sizes), progress=False,
+                          quadrature=Quadrature(ray_rule="gauss", density_theta=8, density_phi=16)).multiple
+        default = precompute(atm, orders=2, sizes=TableSizes(*sizes), quadrature=Quadrature(ray_rule="gauss"),
+                             progress=False).multiple
+    torch.testing.assert_close(got, want, rtol=0, atol=0)
+    assert float((got - default).abs().max()) > 1e-4 * float(default.abs().max())
+    back = model_from_result({"integrator": {"name": "chapman"}, "model": model.settings()})
+    assert back.density_directions == (8, 16) and back.quadrature() == model.quadrature()
+    for bad in ([8], [8, 1], "8,16", [8.5, 16]):
+        with pytest.raises(FitError, match="fit.density_directions"):
+            fit_settings({"density_directions": bad})
+
 def test_an_unknown_ray_rule_in_a_config_is_one_line_and_exit_2(tmp_path, capsys):
     """``fit.ray_rule: simpson`` through the CLI: one line naming the key, exit status 2, no RESULT.json."""
     import yaml

@@ -61,6 +61,10 @@ class SkyModel:
             None = a reduced set that precomputes in seconds on a CPU.
         ray_rule: the Bruneton tables' view-ray rule (:attr:`skyfit.scattering.multiple.Quadrature.ray_rule`):
             2017's ``trapezoid`` or ``gauss``, which resolves a thin aerosol layer with the same nodes.
+        density_directions: (theta, phi) incident directions of the Bruneton tables' scattering density
+            (:attr:`skyfit.scattering.multiple.Quadrature.density_theta`, ``density_phi``): 2017's 16 x 32, or
+            more where a hazy sky's multiple scattering at the zenith must converge (docs/photos.md, "A generator
+            with converged multiple scattering").
     """
 
     integrator: OpticalDepthIntegrator
@@ -75,6 +79,7 @@ class SkyModel:
     lut_samples: int = 20
     table_sizes: tuple[int, ...] | None = None
     ray_rule: str = "trapezoid"
+    density_directions: tuple[int, int] = (16, 32)
     spacing: str = "uniform"
     """Single scattering: view-ray nodes ``uniform`` in distance or ``geometric``
     (:func:`skyfit.scattering.single.geometric_nodes`; :func:`skyfit.render`'s default)."""
@@ -97,12 +102,15 @@ class SkyModel:
 
         if self.ray_rule not in RAY_RULES:
             raise FitError(f"ray_rule must be one of {', '.join(RAY_RULES)}, got {self.ray_rule!r}")
+        self.density_directions = check_density_directions(self.density_directions, "density_directions")
 
     def quadrature(self):
-        """The Bruneton precomputation's sample counts: 2017's, with this model's :attr:`ray_rule`."""
+        """The Bruneton precomputation's sample counts: 2017's, with this model's :attr:`ray_rule` and
+        :attr:`density_directions`."""
         from ..scattering.multiple import Quadrature
 
-        return Quadrature(ray_rule=self.ray_rule)
+        theta, phi = self.density_directions
+        return Quadrature(ray_rule=self.ray_rule, density_theta=theta, density_phi=phi)
 
     @property
     def lagged(self) -> bool:
@@ -174,7 +182,19 @@ class SkyModel:
                 out["table_sizes"] = list(self.table_sizes or self.REDUCED_TABLES)
                 if self.ray_rule != "trapezoid":
                     out["ray_rule"] = self.ray_rule
+                if self.density_directions != (16, 32):
+                    out["density_directions"] = list(self.density_directions)
         return out
+
+
+def check_density_directions(value, where: str) -> tuple[int, int]:
+    """``value`` as (theta, phi) incident directions of the scattering density: two integers >= 2. Raises FitError
+    naming ``where`` otherwise."""
+    ok = isinstance(value, (list, tuple)) and len(value) == 2 and all(isinstance(v, int) and not isinstance(v, bool)
+                                                                     and v >= 2 for v in value)
+    if not ok:
+        raise FitError(f"{where} must be [theta, phi], two integers >= 2, got {value!r}")
+    return (int(value[0]), int(value[1]))
 
 
 def channel_matrix(model_wavelengths: Tensor, obs: Observation) -> Tensor:

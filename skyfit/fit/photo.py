@@ -87,14 +87,18 @@ the aerosol: :func:`lens_from_sun` measures it from a compact sun between the pa
 CALIBRATED_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "sun_azimuth_offset")
 """Free parameters when the camera is given (``camera=``): its geometry, gains, saturations and vignetting are
 known (a file without ``saturation_red`` / ``saturation_blue`` holds them at 1, a colorimetric camera)."""
-PHOTO_TABLES = (64, 32, 16, 8, 16, 64, 16, 8)
+PHOTO_TABLES = (64, 32, 16, 8, 16, 128, 16, 8)
 """Bruneton table sizes of a photo fit's multiple-scattering factor (transmittance mu, r, irradiance mu_s, r,
 scattering r, mu, mu_s, nu), built on :data:`MS_WAVELENGTH_NODES` wavelengths, with Gauss-Legendre view rays (``ray_rule: gauss`` in
 :data:`PHOTO_SETTINGS`). On a hazy sky (AOD 0.3, g 0.82, sun at 23 deg) 2017's 50-interval trapezoid along the view
 ray put orders >= 2 1.43-2.18x above a converged reference (mu 128, 200 Gauss nodes, 32 x 64 density directions)
 at every elevation; the same 51 nodes by Gauss-Legendre 1.01-1.05x away from the sun, 1.17x at the zenith (the
-16 x 32 density directions) and 1.43-1.58x within 25 deg of the sun (the 64 mu samples; 128 give 1.02-1.11x).
-The generator shares these sizes and that rule (docs/photos.md, "The view ray's rule")."""
+16 x 32 density directions) and, with 64 mu samples, 1.43-1.58x within 25 deg of the sun; 128 mu samples give
+1.00-1.11x there (docs/multiple/hazy_convergence.json; ``scripts/ms_hazy_convergence.py``). A generator with those
+converged tables (session 14, docs/photos.md "A generator with converged multiple scattering") showed what the 64
+cost: hazy skies under a high sun fitted 12-43 % low in AOD (held-out case 0, AOD 0.39 at sun zenith 20 deg: -43 %
+with mu 64, -3.7 % with 128). 128 mu samples cost a build 1.7x (the 16 x 32 density directions stay: 32 x 64 would
+cost another 1.7x for the zenith's 1.17x)."""
 PHOTO_CLUSTERS = 24
 """Sky regions of a photo fit's discrepancy term (``fit.sigma_clusters``; :func:`skyfit.fit.budget.robust_sandwich_share`):
 8 scattering-angle x 3 view-zenith bins of ~120 blocks each, twice the 12 free parameters of a photo fit (the
@@ -2352,7 +2356,7 @@ def photo_result(scene: PhotoScene, blocks: BlockImage, prep, problem, res, conf
     if getattr(problem, "bruneton", None) is not None:  # live single scattering + Bruneton's orders, frozen per fit
         ms = problem.bruneton[0]
         # the factor's tables as SkyModel.settings() writes them (a bruneton model: orders, table sizes, ray rule)
-        full = {k: v for k, v in ms.settings().items() if k in ("orders", "multiple", "table_sizes", "ray_rule")}
+        full = {k: v for k, v in ms.settings().items() if k in ("orders", "multiple", "table_sizes", "ray_rule", "density_directions")}
         result["settings"].update(orders=ms.orders, multiple="bruneton")
         result["model"].update(full, multiple_frozen="orders >= 2 from Bruneton's tables, refreshed per fit (fit.photo.lagged_fit)")
         result["integrator"].update(full)

@@ -61,6 +61,8 @@ class FitSettings:
     table_sizes: list[int] | None = None
     ray_rule: str = "trapezoid"
     """Bruneton tables' view-ray rule: ``trapezoid`` (2017) or ``gauss`` (skyfit.scattering.multiple.ray_nodes)."""
+    density_directions: list[int] = dataclasses.field(default_factory=lambda: [16, 32])
+    """Bruneton tables' incident directions (theta, phi) of the scattering density (SkyModel.density_directions)."""
     view_samples: int = 16
     rule: str = "gauss"
     starts: int = FitOptions.starts
@@ -250,6 +252,9 @@ def fit_settings(section: dict | None, overrides: dict | None = None, where: str
 
     if s.ray_rule not in RAY_RULES:
         raise FitError(f"fit.ray_rule must be one of {', '.join(RAY_RULES)}, got {s.ray_rule!r}")
+    from .model import check_density_directions
+
+    s.density_directions = list(check_density_directions(s.density_directions, "fit.density_directions"))
     return s
 
 
@@ -257,7 +262,8 @@ def make_model(s: FitSettings) -> SkyModel:
     """The renderer of a fit's settings (integrator spec, view integral, multiple scattering)."""
     return SkyModel(integrator_from_spec(s.integrator), orders=s.orders, view_samples=s.view_samples, rule=s.rule,
                     multiple=s.multiple, lut_size=s.lut_size, lut_directions=s.lut_directions,
-                    lut_samples=s.lut_samples, table_sizes=s.table_sizes, ray_rule=s.ray_rule)
+                    lut_samples=s.lut_samples, table_sizes=s.table_sizes, ray_rule=s.ray_rule,
+                    density_directions=tuple(s.density_directions))
 
 
 def with_noise_model(obs: Observation, relative: float, absolute: float) -> Observation:

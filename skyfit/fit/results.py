@@ -180,6 +180,8 @@ def model_from_result(res: dict) -> SkyModel:
     m = res["model"]  # SkyModel.settings() wrote the multiple-scattering fields only for orders > 1
     kw = {k: m[k] for k in ("multiple", "lut_size", "lut_directions", "lut_samples", "table_sizes", "ray_rule")
           if m.get(k) is not None}
+    if m.get("density_directions") is not None:
+        kw["density_directions"] = tuple(m["density_directions"])
     return SkyModel(integrator_from_spec(res["integrator"]), orders=int(m.get("orders", 1)),
                     view_samples=int(m.get("view_samples", 32)), rule=m.get("rule", "trapezoid"),
                     ground=bool(m.get("ground", True)), **kw)
