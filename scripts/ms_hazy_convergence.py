@@ -7,7 +7,8 @@ albedo 0.9, g 0.82, Cornette-Shanks), sun at 23 deg zenith, a ground observer, 6
 float64. Views (elevation, azimuth from the sun): (10, 0), (30, 0), (45, 0), (60, 0), (90, -), (30, 90), (30, 180),
 (10, 180). Printed: each setting's orders >= 2 (sky_radiance with all orders minus order 1, at 570 nm) over the
 reference's. The reference: scattering mu 128, 200 Gauss-Legendre view-ray nodes, 32 x 64 density directions, the
-photo fit's other sizes (minutes of CPU). The photo fit's tables: (64, 32, 16, 8, 16, 64, 16, 8).
+photo fit's other sizes (minutes of CPU). The photo fit's tables: (64, 32, 16, 8, 16, 128, 16, 8) since session 14
+(mu 64 before).
 """
 from __future__ import annotations
 
@@ -36,6 +37,10 @@ SETTINGS = [  # (label, table sizes changed from the photo fit's, quadrature)
     ("photo fit, Gauss rays", {}, {"ray_rule": "gauss"}),
     ("Gauss rays, density 32 x 64", {}, {"ray_rule": "gauss", "density_theta": 32, "density_phi": 64}),
     ("Gauss rays, mu 128", {"scattering_mu": 128}, {"ray_rule": "gauss"}),
+    ("Gauss rays, mu 96", {"scattering_mu": 96}, {"ray_rule": "gauss"}),
+    ("Gauss rays, nu 16", {"scattering_nu": 16}, {"ray_rule": "gauss"}),
+    ("Gauss rays, mu 128, density 32 x 64 (the generator's since session 14)", {"scattering_mu": 128},
+     {"ray_rule": "gauss", "density_theta": 32, "density_phi": 64}),
     ("trapezoid, 200 intervals", {}, {"multiple_samples": 200, "single_samples": 200}),
 ]
 REFERENCE = ({"scattering_mu": 128}, {"ray_rule": "gauss", "multiple_samples": 200, "single_samples": 200,
