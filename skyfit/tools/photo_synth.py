@@ -141,9 +141,10 @@ The Sigma is a Foveon (stacked) sensor: every pixel measures all three channels,
 TIGHT_TABLES = (256, 64, 32, 8, 16, 128, 16, 8)
 """Bruneton table sizes of the generator: transmittance 256 x 64 (2017's), irradiance 32 x 8,
 scattering 16 x 128 x 16 x 8 (r, mu, mu_s, nu) -- twice a fit's reduced tables
-(:attr:`SkyModel.REDUCED_TABLES` = 64 x 16, 32 x 8, 8 x 32 x 8 x 4) in every scattering axis, and twice a photo
-fit's mu (:data:`skyfit.fit.photo.PHOTO_TABLES`, 64): with 64 mu samples a hazy sky's orders >= 2 within 25 deg of
-the sun are 1.43-1.58x a converged reference's, with 128 1.02-1.11x (docs/multiple/hazy_convergence.json). With
+(:attr:`SkyModel.REDUCED_TABLES` = 64 x 16, 32 x 8, 8 x 32 x 8 x 4) in every scattering axis, and a photo fit's mu
+since session 14 (:data:`skyfit.fit.photo.PHOTO_TABLES`; 64 before): with 64 mu samples a hazy sky's orders >= 2
+within 25 deg of the sun are 1.43-1.58x a converged reference's, with 128 1.02-1.11x
+(docs/multiple/hazy_convergence.json); with :attr:`SynthSettings.density_directions` 32 x 64 too, within 0.4 %. With
 Gauss-Legendre view rays (:attr:`SynthSettings.ray_rule`): 2017's trapezoid put a hazy sky's orders >= 2 1.4-2.2x
 too high (docs/photos.md, "The view ray's rule")."""
 
@@ -159,7 +160,7 @@ class SynthSettings:
         ray_rule: the tables' view-ray rule (:attr:`skyfit.scattering.multiple.Quadrature.ray_rule`).
         density_directions: (theta, phi) incident directions of the tables' scattering density, Delta J
             (:attr:`skyfit.scattering.multiple.Quadrature.density_theta`): 32 x 64, twice 2017's 16 x 32 in each,
-            which a photo fit keeps; 16 x 32 put a hazy sky's orders >= 2 at the zenith 1.17x a converged
+            which a photo fit keeps by default; 16 x 32 put a hazy sky's orders >= 2 at the zenith 1.17x a converged
             reference's, 32 x 64 1.01x (docs/multiple/hazy_convergence.json).
         zenith_step_deg, azimuth_step_deg: spacing of the sky grid in view zenith and azimuth from
             the sun's vertical plane; pixels interpolate it bilinearly. [deg]
@@ -390,17 +391,12 @@ def _render_grid(values: dict, sun_zenith_deg: float, s: SynthSettings, sun_dist
     atm = make_atmosphere(values, s.wavelengths, config, sun_distance_au)
     integ = make_model(FitSettings()).integrator
     if s.orders > 1:
-        model = SkyModel(integ, orders=s.orders, multiple="bruneton", table_sizes=tuple(s.table_sizes), ray_rule=s.ray_rule)
+        model = SkyModel(integ, orders=s.orders, multiple="bruneton", table_sizes=tuple(s.table_sizes), ray_rule=s.ray_rule,
+                         density_directions=tuple(s.density_directions))
         tkey = _cache_key(akey, s.orders, list(s.table_sizes), s.ray_rule, list(s.density_directions))
         if tkey not in _TABLE_CACHE:
-            from ..scattering.bruneton_tables import TableSizes
-            from ..scattering.multiple import Quadrature, precompute
-
-            quad = Quadrature(ray_rule=s.ray_rule, density_theta=s.density_directions[0],
-                              density_phi=s.density_directions[1])
             with torch.no_grad():
-                _TABLE_CACHE[tkey] = precompute(atm, orders=s.orders, sizes=TableSizes(*s.table_sizes), quadrature=quad,
-                                                progress=False)
+                _TABLE_CACHE[tkey] = model.tables(atm)
             while len(_TABLE_CACHE) > 2:
                 _TABLE_CACHE.popitem(last=False)
         tables = _TABLE_CACHE[tkey]
