@@ -98,7 +98,7 @@ at every elevation; the same 51 nodes by Gauss-Legendre 1.01-1.05x away from the
 converged tables (session 14, docs/photos.md "A generator with converged multiple scattering") showed what the 64
 cost: hazy skies under a high sun fitted 12-43 % low in AOD (held-out case 0, AOD 0.39 at sun zenith 20 deg: -43 %
 with mu 64, -3.7 % with 128). 128 mu samples cost a build 1.7-2x (the 16 x 32 density directions stay: 32 x 64 would
-cost another 1.7x for the zenith's 1.17x)."""
+cost another ~2x for the zenith's 1.17x)."""
 PHOTO_CLUSTERS = 24
 """Sky regions of a photo fit's discrepancy term (``fit.sigma_clusters``; :func:`skyfit.fit.budget.robust_sandwich_share`):
 8 scattering-angle x 3 view-zenith bins of ~120 blocks each, twice the 12 free parameters of a photo fit (the
