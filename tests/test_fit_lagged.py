@@ -615,7 +615,6 @@ def test_the_ray_rule_setting_reaches_the_tables_and_the_result():
         fit_settings({"ray_rule": "simpson"})
 
 
-
 def test_the_density_directions_setting_reaches_the_tables_and_the_result():
     """``fit.density_directions: [8, 16]`` builds the model's Bruneton tables with that many incident directions of
     the scattering density (equal to a precompute with that quadrature, unlike 2017's 16 x 32), is written to the
@@ -646,14 +645,17 @@ def test_the_density_directions_setting_reaches_the_tables_and_the_result():
         with pytest.raises(FitError, match="fit.density_directions"):
             fit_settings({"density_directions": bad})
 
-def test_an_unknown_ray_rule_in_a_config_is_one_line_and_exit_2(tmp_path, capsys):
-    """``fit.ray_rule: simpson`` through the CLI: one line naming the key, exit status 2, no RESULT.json."""
+
+@pytest.mark.parametrize("key,value,shown", [("ray_rule", "simpson", "simpson"), ("density_directions", [16, 1], "[16, 1]")])
+def test_an_unknown_ray_rule_in_a_config_is_one_line_and_exit_2(tmp_path, capsys, key, value, shown):
+    """``fit.ray_rule: simpson`` (or a malformed ``fit.density_directions``) through the CLI: one line naming the key,
+    exit status 2, no RESULT.json."""
     import yaml
 
     from skyfit.atmosphere import load_yaml
 
     cfg = load_yaml(Path(__file__).resolve().parents[1] / "skyfit" / "configs" / "earth.yaml")
-    cfg["fit"] = {"ray_rule": "simpson", "orders": 2, "multiple": "bruneton"}
+    cfg["fit"] = {key: value, "orders": 2, "multiple": "bruneton"}
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump(cfg))
     assert main(["render", "earth", "--out", str(tmp_path / "sky.exr"), "--sun-zenith", "40", "--size", "8"]) == 0
     capsys.readouterr()
@@ -662,5 +664,5 @@ def test_an_unknown_ray_rule_in_a_config_is_one_line_and_exit_2(tmp_path, capsys
     except SystemExit as e:
         rc = e.code
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and len(err) == 1 and "fit.ray_rule" in err[0] and "simpson" in err[0], err
+    assert rc == 2 and len(err) == 1 and f"fit.{key}" in err[0] and shown in err[0], err
     assert not (tmp_path / "r.json").exists()

@@ -98,10 +98,7 @@ class SkyModel:
         self.lut_size = tuple(int(v) for v in self.lut_size)  # type: ignore[assignment]
         if self.table_sizes is not None:
             self.table_sizes = tuple(int(v) for v in self.table_sizes)
-        from ..scattering.multiple import RAY_RULES
-
-        if self.ray_rule not in RAY_RULES:
-            raise FitError(f"ray_rule must be one of {', '.join(RAY_RULES)}, got {self.ray_rule!r}")
+        check_ray_rule(self.ray_rule, "ray_rule")
         self.density_directions = check_density_directions(self.density_directions, "density_directions")
 
     def quadrature(self):
@@ -185,6 +182,16 @@ class SkyModel:
                 if self.density_directions != (16, 32):
                     out["density_directions"] = list(self.density_directions)
         return out
+
+
+def check_ray_rule(value, where: str) -> str:
+    """``value`` if it is a Bruneton view-ray rule (:data:`skyfit.scattering.multiple.RAY_RULES`); else FitError
+    naming ``where``."""
+    from ..scattering.multiple import RAY_RULES
+
+    if value not in RAY_RULES:
+        raise FitError(f"{where} must be one of {', '.join(RAY_RULES)}, got {value!r}")
+    return value
 
 
 def check_density_directions(value, where: str) -> tuple[int, int]:

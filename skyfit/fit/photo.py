@@ -2355,7 +2355,7 @@ def photo_result(scene: PhotoScene, blocks: BlockImage, prep, problem, res, conf
                          laplace=laplace)
     if getattr(problem, "bruneton", None) is not None:  # live single scattering + Bruneton's orders, frozen per fit
         ms = problem.bruneton[0]
-        # the factor's tables as SkyModel.settings() writes them (a bruneton model: orders, table sizes, ray rule)
+        # the factor's tables as SkyModel.settings() writes them (orders, table sizes, ray rule, density directions)
         full = {k: v for k, v in ms.settings().items() if k in ("orders", "multiple", "table_sizes", "ray_rule", "density_directions")}
         result["settings"].update(orders=ms.orders, multiple="bruneton")
         result["model"].update(full, multiple_frozen="orders >= 2 from Bruneton's tables, refreshed per fit (fit.photo.lagged_fit)")

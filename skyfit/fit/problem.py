@@ -25,7 +25,7 @@ from ..transmittance import integrator_from_spec
 from .budget import CLUSTERS, DISCREPANCY_DEFAULT, DISCREPANCY_MODELS, SIGMA_MODES
 from .data import Observation, check_noise_model, expand_data_paths, noise_sigma, observation_from_exr, observation_from_kider
 from .losses import Loss, make_loss
-from .model import FitProblem, SkyModel
+from .model import FitProblem, SkyModel, check_density_directions, check_ray_rule
 from .optimise import METHODS, FitOptions
 from .parameters import NUISANCE, FitError, Parameterisation, check_names
 
@@ -248,12 +248,7 @@ def fit_settings(section: dict | None, overrides: dict | None = None, where: str
         raise FitError(f"fit.sigma_reference must be [R, MU, MU_S, NU, ORDERS], integers >= 2, got {s.sigma_reference!r}")
     if s.dtype not in DTYPES:
         raise FitError(f"dtype must be float32 or float64, got {s.dtype!r}")
-    from ..scattering.multiple import RAY_RULES
-
-    if s.ray_rule not in RAY_RULES:
-        raise FitError(f"fit.ray_rule must be one of {', '.join(RAY_RULES)}, got {s.ray_rule!r}")
-    from .model import check_density_directions
-
+    check_ray_rule(s.ray_rule, "fit.ray_rule")
     s.density_directions = list(check_density_directions(s.density_directions, "fit.density_directions"))
     return s
 

@@ -178,10 +178,8 @@ def read_result(path: str | Path) -> dict:
 def model_from_result(res: dict) -> SkyModel:
     """The SkyModel a RESULT.json was fitted with (its ``integrator`` and ``model`` entries)."""
     m = res["model"]  # SkyModel.settings() wrote the multiple-scattering fields only for orders > 1
-    kw = {k: m[k] for k in ("multiple", "lut_size", "lut_directions", "lut_samples", "table_sizes", "ray_rule")
-          if m.get(k) is not None}
-    if m.get("density_directions") is not None:
-        kw["density_directions"] = tuple(m["density_directions"])
+    kw = {k: m[k] for k in ("multiple", "lut_size", "lut_directions", "lut_samples", "table_sizes", "ray_rule",
+                            "density_directions") if m.get(k) is not None}  # SkyModel makes the lists tuples
     return SkyModel(integrator_from_spec(res["integrator"]), orders=int(m.get("orders", 1)),
                     view_samples=int(m.get("view_samples", 32)), rule=m.get("rule", "trapezoid"),
                     ground=bool(m.get("ground", True)), **kw)
