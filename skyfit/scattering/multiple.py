@@ -60,6 +60,7 @@ from tqdm import tqdm
 from ..atmosphere import Atmosphere
 from ..atmosphere.profiles import profile_densities
 from ..geometry import distance_to_bottom, distance_to_top, ray_hits_ground, safe_sqrt
+from ..quadrature import nodes_weights
 from .bruneton_tables import (
     MU_S_MIN_DEFAULT,
     ScatteringTexels,
@@ -134,11 +135,9 @@ def ray_nodes(n: int, rule: str, dtype, device) -> tuple[Tensor, Tensor]:
     both ends (the first at ~1.4/(n+1)^2 of the ray, 0.2 km there), where such layers sit."""
     if rule == "trapezoid":
         return _trapezoid(n, dtype, device)
-    import numpy as np  # Gauss-Legendre nodes: numpy's leggauss (Golub-Welsch), mapped from [-1, 1]
-
-    t, w = np.polynomial.legendre.leggauss(n + 1)
-    return (torch.as_tensor(0.5 * (t + 1.0), dtype=dtype, device=device),
-            torch.as_tensor(0.5 * w, dtype=dtype, device=device))
+    # Gauss-Legendre: numpy's leggauss mapped to [0, 1], cached by skyfit.quadrature (a build asked for them ~300
+    # times, once per chunk: 6 % of a photo fit's build, docs/benchmarks.md "Third pass: the Gauss nodes cached")
+    return nodes_weights("gauss", n + 1, dtype, device)
 
 
 @dataclasses.dataclass
