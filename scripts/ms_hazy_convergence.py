@@ -1,9 +1,9 @@
 """Orders >= 2 of Bruneton's tables on a hazy sky against a converged reference: which table size or rule decides.
 
-    OMP_NUM_THREADS=2 .venv/bin/python scripts/ms_hazy_convergence.py [--threads 2] [--out docs/multiple/hazy_convergence.json]
+    OMP_NUM_THREADS=2 .venv/bin/python scripts/ms_hazy_convergence.py [--threads 2] [--by-order] [--sun 23] [--out docs/multiple/hazy_convergence.json]
 
 Hazy Earth (configs/earth.yaml with AOD 0.3 at 550 nm in its 1.2 km Mie layer, Angstrom alpha 1.3, single-scattering
-albedo 0.9, g 0.82, Cornette-Shanks), sun at 23 deg zenith, a ground observer, 6 wavelengths 420-680 nm, 4 orders,
+albedo 0.9, g 0.82, Cornette-Shanks), sun at 23 deg zenith (``--sun``), a ground observer, 6 wavelengths 420-680 nm, 4 orders,
 float64. Views (elevation, azimuth from the sun): (10, 0), (30, 0), (45, 0), (60, 0), (90, -), (30, 90), (30, 180),
 (10, 180). Printed: each setting's orders >= 2 (sky_radiance with all orders minus order 1, at 570 nm) over the
 reference's. The reference: scattering mu 128, 200 Gauss-Legendre view-ray nodes, 32 x 64 density directions, the
@@ -42,7 +42,19 @@ SETTINGS = [  # (label, table sizes changed from the photo fit's, quadrature)
     ("Gauss rays, mu 128, density 32 x 64 (the generator's since session 14)", {"scattering_mu": 128},
      {"ray_rule": "gauss", "density_theta": 32, "density_phi": 64}),
     ("trapezoid, 200 intervals", {}, {"multiple_samples": 200, "single_samples": 200}),
+    # session 15: which of the density directions' two axes decides at mu 128
+    ("Gauss rays, mu 128, density 32 x 32", {"scattering_mu": 128}, {"ray_rule": "gauss", "density_theta": 32, "density_phi": 32}),
+    ("Gauss rays, mu 128, density 24 x 32", {"scattering_mu": 128}, {"ray_rule": "gauss", "density_theta": 24, "density_phi": 32}),
+    ("Gauss rays, mu 128, density 32 x 16", {"scattering_mu": 128}, {"ray_rule": "gauss", "density_theta": 32, "density_phi": 16}),
+    ("Gauss rays, mu 128, density 16 x 64", {"scattering_mu": 128}, {"ray_rule": "gauss", "density_theta": 16, "density_phi": 64}),
 ]
+SETTINGS.append(("Gauss rays, mu 128, density 16 x 32, 2 zenith bands split (the photo fit's since session 15)",
+                 {"scattering_mu": 128}, {"ray_rule": "gauss", "density_zenith": 2}))
+SUN_ZENITH_DEG = 23.0
+"""The sun's zenith angle of every setting and the reference (``--sun``). [deg]"""
+BY_ORDER = [(16, 32), (32, 32), (8, 16)]
+"""``--by-order``: density directions (theta, phi) whose orders 2, 3 and 4 are each compared with the same order of
+the generator's tables (mu 128, Gauss rays, 32 x 64)."""
 REFERENCE = ({"scattering_mu": 128}, {"ray_rule": "gauss", "multiple_samples": 200, "single_samples": 200,
                                       "density_theta": 32, "density_phi": 64})
 
@@ -54,7 +66,7 @@ def hazy_atmosphere():
 
 
 def orders_2_up(atm, sizes: dict, quad: dict) -> tuple[torch.Tensor, float]:
-    sz = math.radians(23.0)
+    sz = math.radians(SUN_ZENITH_DEG)
     el = torch.tensor([v[0] for v in VIEWS], dtype=torch.float64)
     az = torch.deg2rad(torch.tensor([v[1] for v in VIEWS], dtype=torch.float64))
     vz = torch.deg2rad(90.0 - el)
@@ -69,11 +81,48 @@ def orders_2_up(atm, sizes: dict, quad: dict) -> tuple[torch.Tensor, float]:
     return (every - first)[:, WAVELENGTHS.index(570.0)], time.process_time() - t0
 
 
+def each_order(atm, theta: int, phi: int) -> list[torch.Tensor]:
+    """Orders 2, 3, 4 apart (sky_radiance with 2, 3, 4 orders minus the one below; ground included) at 570 nm, tables
+    of mu 128 with Gauss rays and ``theta`` x ``phi`` density directions."""
+    sz = math.radians(SUN_ZENITH_DEG)
+    el = torch.tensor([v[0] for v in VIEWS], dtype=torch.float64)
+    az = torch.deg2rad(torch.tensor([v[1] for v in VIEWS], dtype=torch.float64))
+    vz = torch.deg2rad(90.0 - el)
+    mu, mu_s = torch.sin(torch.deg2rad(el)), torch.full_like(el, math.cos(sz))
+    nu = torch.cos(vz) * math.cos(sz) + torch.sin(vz) * math.sin(sz) * torch.cos(az)
+    r = torch.full_like(mu, float(atm.bottom_radius) + 1.0)
+    with torch.no_grad():
+        tab = precompute(atm, orders=4, sizes=TableSizes(**{**PHOTO, "scattering_mu": 128}), keep_orders=True,
+                         quadrature=Quadrature(ray_rule="gauss", density_theta=theta, density_phi=phi), progress=False)
+        up_to = [sky_radiance(tab, None, r, mu, mu_s, nu, orders=k, ground=True)[:, WAVELENGTHS.index(570.0)]
+                 for k in (1, 2, 3, 4)]
+    return [up_to[k] - up_to[k - 1] for k in (1, 2, 3)]
+
+
+def by_order(atm) -> dict:
+    """Each order's ratio to the generator's density directions (32 x 64) for :data:`BY_ORDER`, and the share of
+    orders 3 and 4 in orders >= 2 there."""
+    base = each_order(atm, 32, 64)
+    out = {"share_orders_3_4": [float(x) for x in (base[1] + base[2]) / sum(base)], "rows": []}
+    print("orders 3 + 4 of orders >= 2: " + " ".join(f"{x:.3f}" for x in out["share_orders_3_4"]), flush=True)
+    for theta, phi in BY_ORDER:
+        d = each_order(atm, theta, phi)
+        row = {"density": [theta, phi], "order_over_32x64": [[float(x) for x in d[k] / base[k]] for k in range(3)]}
+        out["rows"].append(row)
+        print(f"density {theta} x {phi}: " + " | ".join(" ".join(f"{x:.3f}" for x in o) for o in row["order_over_32x64"]),
+              flush=True)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default="docs/multiple/hazy_convergence.json")
+    ap.add_argument("--by-order", action="store_true", help="also each order 2, 3, 4 apart for the density directions "
+                    "of BY_ORDER against 32 x 64 (mu 128, Gauss rays): the JSON's by_order")
+    ap.add_argument("--sun", type=float, default=SUN_ZENITH_DEG, help="the sun's zenith angle [deg] (default %(default)s)")
     args = ap.parse_args()
+    globals()["SUN_ZENITH_DEG"] = args.sun
     torch.set_num_threads(args.threads)
     atm = hazy_atmosphere()
     ref, ref_cpu = orders_2_up(atm, *REFERENCE)
@@ -86,9 +135,9 @@ def main() -> None:
         print(f"{label:30s} {cpu:6.1f} s CPU  " + " ".join(f"{x:.3f}" for x in ratio), flush=True)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"views": VIEWS, "reference": {"sizes": {**PHOTO, **REFERENCE[0]}, "quadrature": REFERENCE[1],
+    out.write_text(json.dumps({"views": VIEWS, "sun_zenith_deg": SUN_ZENITH_DEG, "reference": {"sizes": {**PHOTO, **REFERENCE[0]}, "quadrature": REFERENCE[1],
                                                              "orders_2_up_570nm": [float(x) for x in ref], "cpu_s": ref_cpu},
-                               "rows": rows}, indent=1))
+                               "rows": rows, **({"by_order": by_order(atm)} if args.by_order else {})}, indent=1))
 
 
 if __name__ == "__main__":

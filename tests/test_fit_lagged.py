@@ -641,9 +641,19 @@ def test_the_density_directions_setting_reaches_the_tables_and_the_result():
     assert float((got - default).abs().max()) > 1e-4 * float(default.abs().max())
     back = model_from_result({"integrator": {"name": "chapman"}, "model": model.settings()})
     assert back.density_directions == (8, 16) and back.quadrature() == model.quadrature()
-    for bad in ([8], [8, 1], "8,16", [8.5, 16]):
+    for bad in ([8], [8, 1], "8,16", [8.5, 16], [8, 16, 9], [8, 16, -1], [8, 16, 2, 2]):
         with pytest.raises(FitError, match="fit.density_directions"):
             fit_settings({"density_directions": bad})
+    # a third value splits that many theta bands from the zenith (Quadrature.density_zenith); 0 is 2017's rule
+    split = make_model(fit_settings({**base, "density_directions": [8, 16, 2]}))
+    assert split.quadrature() == Quadrature(ray_rule="gauss", density_theta=8, density_phi=16, density_zenith=2)
+    assert split.settings()["density_directions"] == [8, 16, 2]
+    assert model_from_result({"integrator": {"name": "chapman"}, "model": split.settings()}).quadrature() == split.quadrature()
+    with torch.no_grad():
+        want = precompute(atm, orders=2, sizes=TableSizes(*sizes), progress=False, quadrature=split.quadrature()).multiple
+    torch.testing.assert_close(split.tables(atm).multiple, want, rtol=0, atol=0)
+    assert float((want - got).abs().max()) > 1e-4 * float(got.abs().max())
+    assert make_model(fit_settings({**base, "density_directions": [8, 16, 0]})).density_directions == (8, 16)
 
 
 @pytest.mark.parametrize("key,value,shown", [("ray_rule", "simpson", "simpson"), ("density_directions", [16, 1], "[16, 1]")])

@@ -22,7 +22,7 @@ import torch
 from skyfit.atmosphere import load_atmosphere
 from skyfit.scattering import single_scattering
 from skyfit.scattering.bruneton_tables import TableSizes
-from skyfit.scattering.multiple import PrecomputedAtmosphere, Quadrature, precompute, sky_radiance
+from skyfit.scattering.multiple import PrecomputedAtmosphere, Quadrature, _density_directions, precompute, sky_radiance
 from skyfit.scattering.multiple_reference import mc_radiance
 from skyfit.transmittance import make_integrator
 
@@ -374,6 +374,36 @@ def test_lookups_at_the_top_of_the_atmosphere(earth_tables):
     torch.testing.assert_close(direct, tab.atm.solar_irradiance)
     s_r, s_m, mult = tab.scattering(Rt, one, one, one)  # zero-length ray
     assert float(s_r.abs().max()) == 0.0 and float(s_m.abs().max()) == 0.0 and float(mult.abs().max()) == 0.0
+
+
+def test_split_zenith_bands_integrate_a_forward_peak_at_the_pole():
+    """The scattering density's sphere rule against a closed form: for a normalised Henyey-Greenstein phase (g 0.82)
+    about a view v and a radiance 1 + 0.5 cos(theta), the integral is 1 + 0.5 g cos(theta_v). 2017's 16 x 32 midpoint
+    rule puts the view at the zenith, where the peak sits at the grid's pole, 6 % high; with the two bands nearest
+    the zenith split (``density_zenith=2``, 576 directions) it is within 1 % there and within 1.5 % at every view
+    0-90 deg from the zenith. Without a split the rule is 2017's to the bit."""
+    g = 0.82
+
+    def hg(c):
+        return (1.0 - g * g) / (4.0 * math.pi * (1.0 + g * g - 2.0 * g * c) ** 1.5)
+
+    def error(quad, theta_v_deg):
+        t = math.radians(theta_v_deg)
+        v = torch.tensor([math.sin(t), 0.0, math.cos(t)], dtype=torch.float64)
+        om, dom = _density_directions(quad, torch.float64, "cpu")
+        return float((hg(om @ v) * (1.0 + 0.5 * om[:, 2]) * dom).sum()) / (1.0 + 0.5 * g * math.cos(t)) - 1.0
+
+    uniform, split = Quadrature(), Quadrature(density_zenith=2)
+    assert error(uniform, 0.0) > 0.05 and abs(error(split, 0.0)) < 0.01
+    assert max(abs(error(split, a)) for a in range(0, 91, 5)) < 0.015
+    om, dom = _density_directions(split, torch.float64, "cpu")
+    assert om.shape == (18 * 32, 3) and abs(float(dom.sum()) / (4.0 * math.pi) - 1.0) < 0.01
+    a, b = _density_directions(Quadrature(density_zenith=0), torch.float32, "cpu"), _density_directions(uniform, torch.float32, "cpu")
+    dth, dph = math.pi / 16, 2.0 * math.pi / 32
+    th, ph = torch.meshgrid((torch.arange(16, dtype=torch.float32) + 0.5) * dth, (torch.arange(32, dtype=torch.float32) + 0.5) * dph, indexing="ij")
+    assert torch.equal(b[1], (torch.sin(th) * dth * dph).reshape(-1)) and torch.equal(a[0], b[0])
+    with pytest.raises(ValueError, match="density_zenith"):
+        Quadrature(density_zenith=17)
 
 
 def test_ray_rules_integrate_a_thin_layer_and_gauss_needs_fewer_nodes():

@@ -61,10 +61,11 @@ class SkyModel:
             None = a reduced set that precomputes in seconds on a CPU.
         ray_rule: the Bruneton tables' view-ray rule (:attr:`skyfit.scattering.multiple.Quadrature.ray_rule`):
             2017's ``trapezoid`` or ``gauss``, which resolves a thin aerosol layer with the same nodes.
-        density_directions: (theta, phi) incident directions of the Bruneton tables' scattering density
-            (:attr:`skyfit.scattering.multiple.Quadrature.density_theta`, ``density_phi``): 2017's 16 x 32, or
-            more where a hazy sky's multiple scattering at the zenith must converge (docs/photos.md, "A generator
-            with converged multiple scattering").
+        density_directions: (theta, phi) or (theta, phi, zenith) incident directions of the Bruneton tables'
+            scattering density (:attr:`skyfit.scattering.multiple.Quadrature.density_theta`, ``density_phi``,
+            ``density_zenith``: the first ``zenith`` theta bands split in two): 2017's 16 x 32, or more where a
+            hazy sky's multiple scattering at the zenith must converge (docs/photos.md, "A generator with
+            converged multiple scattering"; docs/multiple_scattering.md, "The density directions' pole").
     """
 
     integrator: OpticalDepthIntegrator
@@ -79,7 +80,7 @@ class SkyModel:
     lut_samples: int = 20
     table_sizes: tuple[int, ...] | None = None
     ray_rule: str = "trapezoid"
-    density_directions: tuple[int, int] = (16, 32)
+    density_directions: tuple[int, ...] = (16, 32)
     spacing: str = "uniform"
     """Single scattering: view-ray nodes ``uniform`` in distance or ``geometric``
     (:func:`skyfit.scattering.single.geometric_nodes`; :func:`skyfit.render`'s default)."""
@@ -106,8 +107,8 @@ class SkyModel:
         :attr:`density_directions`."""
         from ..scattering.multiple import Quadrature
 
-        theta, phi = self.density_directions
-        return Quadrature(ray_rule=self.ray_rule, density_theta=theta, density_phi=phi)
+        theta, phi, *zenith = self.density_directions
+        return Quadrature(ray_rule=self.ray_rule, density_theta=theta, density_phi=phi, density_zenith=zenith[0] if zenith else 0)
 
     @property
     def lagged(self) -> bool:
@@ -194,14 +195,18 @@ def check_ray_rule(value, where: str) -> str:
     return value
 
 
-def check_density_directions(value, where: str) -> tuple[int, int]:
-    """``value`` as (theta, phi) incident directions of the scattering density: two integers >= 2. Raises FitError
-    naming ``where`` otherwise."""
-    ok = isinstance(value, (list, tuple)) and len(value) == 2 and all(isinstance(v, int) and not isinstance(v, bool)
-                                                                     and v >= 2 for v in value)
+def check_density_directions(value, where: str) -> tuple[int, ...]:
+    """``value`` as (theta, phi) or (theta, phi, zenith) incident directions of the scattering density: integers,
+    theta and phi >= 2, zenith in [0, theta] (the theta bands split in two from the zenith). Raises FitError naming
+    ``where`` otherwise."""
+    ok = (isinstance(value, (list, tuple)) and len(value) in (2, 3)
+          and all(isinstance(v, int) and not isinstance(v, bool) for v in value)
+          and all(v >= 2 for v in value[:2]) and (len(value) == 2 or 0 <= value[2] <= value[0]))
     if not ok:
-        raise FitError(f"{where} must be [theta, phi], two integers >= 2, got {value!r}")
-    return (int(value[0]), int(value[1]))
+        raise FitError(f"{where} must be [theta, phi] or [theta, phi, zenith]: integers, theta and phi >= 2, zenith in "
+                       f"[0, theta], got {value!r}")
+    out = tuple(int(v) for v in value)
+    return out[:2] if len(out) == 3 and out[2] == 0 else out  # no split bands: 2017's rule, written as such
 
 
 def channel_matrix(model_wavelengths: Tensor, obs: Observation) -> Tensor:

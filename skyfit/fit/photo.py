@@ -99,12 +99,21 @@ converged tables (session 14, docs/photos.md "A generator with converged multipl
 cost: hazy skies under a high sun fitted 12-43 % low in AOD (held-out case 0, AOD 0.39 at sun zenith 20 deg: -43 %
 with mu 64, -3.7 % with 128). 128 mu samples cost a build 1.7-2x (the 16 x 32 density directions stay: 32 x 64 would
 cost another ~2x for the zenith's 1.17x)."""
+PHOTO_DENSITY = (16, 32, 2)
+"""Incident directions of the scattering density in a photo fit's tables (``fit.density_directions``; theta, phi,
+zenith bands split: :attr:`skyfit.scattering.multiple.Quadrature.density_zenith`): 2017's 16 x 32 with the two bands
+nearest the zenith halved, 576 directions. With 2017's 512 a hazy sky's orders >= 2 (AOD 0.3, g 0.82, sun at 23 deg)
+came out 16 % high at the zenith and 11 % high 30 deg from it towards the sun, where each view's forward peak sits at
+the grid's pole; with the split bands every view of scripts/ms_hazy_convergence.py is within 1 % of the converged
+tables at sun zeniths 23 and 50 deg and within 3.6 % at 70 deg, as with 32 x 32 (1024 directions), for a build 1.1x
+instead of 1.3x (docs/multiple_scattering.md, "The density directions' pole"; session 14 had measured seed-0 case 6,
+AOD 0.30 at sun zenith 23 deg, at -15.6 % with 16 x 32 and -9.7 % with 32 x 64)."""
 PHOTO_CLUSTERS = 24
 """Sky regions of a photo fit's discrepancy term (``fit.sigma_clusters``; :func:`skyfit.fit.budget.robust_sandwich_share`):
 8 scattering-angle x 3 view-zenith bins of ~120 blocks each, twice the 12 free parameters of a photo fit (the
 sandwich needs G - 1 >= P; its variances' relative spread is about sqrt(2 / (G - 1)), 0.3)."""
 PHOTO_SETTINGS = {"loss": "cauchy", "orders": 4, "multiple": "bruneton", "table_sizes": list(PHOTO_TABLES), "ray_rule": "gauss",
-                  "starts": 1, "adam_steps": 30, "max_iter": 80, "sigma_clusters": PHOTO_CLUSTERS,
+                  "density_directions": list(PHOTO_DENSITY), "starts": 1, "adam_steps": 30, "max_iter": 80, "sigma_clusters": PHOTO_CLUSTERS,
                   "initial": {"mie_aod_550": 0.1, "mie_angstrom_alpha": 1.0, "mie_g": 0.7}}
 """Fit settings of a photo unless the config's ``fit:`` section or keywords say otherwise: a robust loss
 (obstacles the masks miss); four orders of Bruneton's tables (:data:`PHOTO_TABLES`) frozen per fit around live single

@@ -62,7 +62,7 @@ class FitSettings:
     ray_rule: str = "trapezoid"
     """Bruneton tables' view-ray rule: ``trapezoid`` (2017) or ``gauss`` (skyfit.scattering.multiple.ray_nodes)."""
     density_directions: list[int] = dataclasses.field(default_factory=lambda: [16, 32])
-    """Bruneton tables' incident directions (theta, phi) of the scattering density (SkyModel.density_directions)."""
+    """Bruneton tables' incident directions (theta, phi[, zenith]) of the scattering density (SkyModel.density_directions)."""
     view_samples: int = 16
     rule: str = "gauss"
     starts: int = FitOptions.starts
