@@ -104,3 +104,31 @@ def test_a_parameter_on_its_bound_has_no_gaussian_sigma_but_its_interval_reaches
     assert lap["values"]["mie_scale_height"] == pytest.approx(20000.0, rel=1e-6)
     lo, hi = lap["interval95"]["mie_scale_height"]
     assert hi == pytest.approx(20000.0, rel=1e-6) and lo < 20000.0
+
+
+def test_a_parameter_held_on_its_bound_leaves_the_others_their_sigma():
+    """H_M past its bound's clamp (x = 40: the sigmoid's slope is 0, so the Hessian has a zero row and is not positive
+    definite) at the optimum of the others there: every sigma used to be None. The others' covariance is now that of
+    H_M held there, as an active constraint: equal to the Laplace sigma of the same fit with H_M not free and set to
+    its bound (an independent problem, fitted on its own), and H_M itself None and listed in ``held_at_bound``."""
+    from skyfit.fit.parameters import PARAMETERS
+
+    obs, _ = tiny_observation(noise=0.01, seed=2)
+    top = PARAMETERS["mie_scale_height"].hi
+    base = atmosphere_from_config(_config(), LAM)
+    base = base.replace(mie_scale_height=torch.full_like(base.mie_scale_height, top))
+    fixed = FitProblem(Parameterisation(base, ["mie_beta_550", "exposure"]),
+                       SkyModel(make_integrator("chapman"), view_samples=4, rule="gauss"), [obs], make_loss("squared"))
+    xf = fit(fixed, FitOptions(starts=1, adam_steps=0, max_iter=200, grad_tol=1e-12)).x
+    want = laplace_summary(fixed, xf)
+    assert want["positive_definite"]
+
+    prob = _problem(["mie_beta_550", "mie_scale_height", "exposure"], obs)
+    x = torch.stack([xf[0], torch.tensor(40.0, dtype=xf.dtype), xf[1]])
+    assert float(prob.param.physical_dict(x)["mie_scale_height"]) == pytest.approx(top, rel=1e-9)
+    assert not bool(torch.linalg.eigvalsh(hessian_nll(prob, x)).min() > 0)  # the case that gave every sigma None
+    lap = laplace_summary(prob, x)
+    assert lap["positive_definite"] and lap["held_at_bound"] == ["mie_scale_height"]
+    assert lap["sigma"]["mie_scale_height"] is None
+    for n in ("mie_beta_550", "exposure"):
+        assert lap["sigma"][n] == pytest.approx(want["sigma"][n], rel=1e-6)

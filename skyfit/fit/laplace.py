@@ -18,6 +18,7 @@ each parameter's range, e.g. g in (-1, 1)).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 import time
 
 import torch
@@ -118,11 +119,22 @@ def derived_functions(problem: FitProblem):
 
 
 
-def covariance_from_hessian(H: Tensor) -> tuple[Tensor, bool, float]:
-    """(H^-1, positive definite, min eigenvalue) of a Hessian (P, P); the pseudo-inverse when not PD."""
+def covariance_from_hessian(H: Tensor, held: Sequence[bool] | None = None) -> tuple[Tensor, bool, float]:
+    """(H^-1, positive definite, min eigenvalue) of a Hessian (P, P); the pseudo-inverse when not PD.
+
+    ``held``: slots held where they are (a parameter on its bound, :func:`bound_slots`): the covariance of the others
+    with those fixed (the inverse of H without their rows and columns, as for an active constraint), zero in their
+    rows and columns; positive definite and the min eigenvalue are of that block."""
     H = H.to(torch.float64)
     if not bool(torch.isfinite(H).all()):
         raise FitError("Laplace: the Hessian at the fit is not finite")
+    if held is not None and any(held):
+        keep = torch.tensor([not h for h in held], device=H.device)
+        idx = torch.nonzero(keep).reshape(-1)
+        block, pd, min_eig = covariance_from_hessian(H.index_select(0, idx).index_select(1, idx))
+        cov_x = torch.zeros_like(H)
+        cov_x[idx.unsqueeze(1), idx.unsqueeze(0)] = block
+        return cov_x, pd, min_eig
     evals = torch.linalg.eigvalsh(H)
     L, info = torch.linalg.cholesky_ex(H)
     pd = bool(evals.min() > 0) and int(info) == 0  # an eigenvalue at rounding level can fail the factorisation
@@ -193,9 +205,20 @@ def laplace_summary(problem: FitProblem, x: Tensor, hessian: Tensor | None = Non
     """
     t0 = time.perf_counter()
     x = x.detach()
-    cov_x, pd, min_eig = covariance_from_hessian(hessian_nll(problem, x) if hessian is None else hessian)
+    H = hessian_nll(problem, x) if hessian is None else hessian
+    cov_x, pd, min_eig = covariance_from_hessian(H)
+    edge = bound_slots(problem, x)
+    held = None
+    if not pd and any(edge) and not all(edge):
+        # a parameter on its bound is a flat direction of x (the sigmoid saturates): it took every sigma with it
+        # (held-out synthetic photo 6, session 15: a camera's red saturation on its 0.1). The others' covariance with
+        # it held there, as an active constraint; its own sigma stays None (covariance_summary)
+        cov_x, pd, min_eig = covariance_from_hessian(H, held=edge)
+        held = [n for n, e in zip(display_names(problem), edge) if e]
     out = covariance_summary(problem, x, cov_x, pd)
     out["positive_definite"] = pd
     out["min_eigenvalue"] = min_eig
+    if held:
+        out["held_at_bound"] = held
     out["seconds"] = time.perf_counter() - t0
     return out

@@ -105,8 +105,9 @@ zenith bands split: :attr:`skyfit.scattering.multiple.Quadrature.density_zenith`
 nearest the zenith halved, 576 directions. With 2017's 512 a hazy sky's orders >= 2 (AOD 0.3, g 0.82, sun at 23 deg)
 came out 16 % high at the zenith and 11 % high 30 deg from it towards the sun, where each view's forward peak sits at
 the grid's pole; with the split bands every view of scripts/ms_hazy_convergence.py is within 1 % of the converged
-tables at sun zeniths 23 and 50 deg and within 3.6 % at 70 deg, as with 32 x 32 (1024 directions), for a build 1.1x
-instead of 1.3x (docs/multiple_scattering.md, "The density directions' pole"; session 14 had measured seed-0 case 6,
+tables with the sun at 23 deg, and the zenith within 1.1 % with the sun at 50 and 70 deg (the worst view there 3.1 and
+3.6 % low, near the sun and the horizon, as with 32 x 32's 1.6 and 3.2 %), for 12 % more directions where 32 x 32
+doubles them (docs/multiple_scattering.md, "The density directions' pole"; session 14 had measured seed-0 case 6,
 AOD 0.30 at sun zenith 23 deg, at -15.6 % with 16 x 32 and -9.7 % with 32 x 64)."""
 PHOTO_CLUSTERS = 24
 """Sky regions of a photo fit's discrepancy term (``fit.sigma_clusters``; :func:`skyfit.fit.budget.robust_sandwich_share`):
