@@ -78,13 +78,19 @@ def physical_slot_values(problem: FitProblem, x: Tensor) -> Tensor:
     return out
 
 
+HELD_NEAR_BOUND = 1e-3
+"""Where the Hessian is not positive definite, a bounded parameter whose position u in its range lies within this of 0
+or 1 is held there for the others' covariance (:func:`laplace_summary`): pressed against its bound, its sigmoid all but
+saturated, it is a flat direction of x (held-out synthetic photo 6, session 15: a camera's red saturation at 0.10007 of
+its 0.1, u 1.7e-4, the Hessian's one negative eigenvalue -0.06 along it alone, took every sigma with it). [1]"""
+
 AT_BOUND = 1e-6
 """A bounded parameter (``interval``, ``loginterval``) whose position u = sigmoid(x) in its range lies within this of 0
 or 1 sits on its bound. [1]"""
 
 
-def bound_slots(problem: FitProblem, x: Tensor) -> list[bool]:
-    """Whether each slot of x (P,) sits on a bound of its range (:data:`AT_BOUND`). There the transform's slope is 0
+def bound_slots(problem: FitProblem, x: Tensor, within: float = AT_BOUND) -> list[bool]:
+    """Whether each slot of x (P,) sits on a bound of its range (``within`` of it in u: :data:`AT_BOUND`). There the transform's slope is 0
     (the sigmoid saturates, and is clamped beyond :data:`skyfit.fit.parameters.SIGMOID_EDGE`), so the delta method's
     physical sigma is about 0 whatever the data allow: the likelihood is not Gaussian there, and only the interval
     (x +- z sigma_x mapped, which reaches from inside the range to the bound) describes it."""
@@ -95,7 +101,7 @@ def bound_slots(problem: FitProblem, x: Tensor) -> list[bool]:
             continue
         for k in p._slots[n]:
             u = float(torch.sigmoid(x[k].detach().to(torch.float64)))
-            out[k] = min(u, 1.0 - u) < AT_BOUND
+            out[k] = min(u, 1.0 - u) < within
     return out
 
 
@@ -207,12 +213,12 @@ def laplace_summary(problem: FitProblem, x: Tensor, hessian: Tensor | None = Non
     x = x.detach()
     H = hessian_nll(problem, x) if hessian is None else hessian
     cov_x, pd, min_eig = covariance_from_hessian(H)
-    edge = bound_slots(problem, x)
+    edge = bound_slots(problem, x, HELD_NEAR_BOUND)
     held = None
     if not pd and any(edge) and not all(edge):
-        # a parameter on its bound is a flat direction of x (the sigmoid saturates): it took every sigma with it
-        # (held-out synthetic photo 6, session 15: a camera's red saturation on its 0.1). The others' covariance with
-        # it held there, as an active constraint; its own sigma stays None (covariance_summary)
+        # a parameter pressed against its bound is a flat direction of x (the sigmoid saturates): it took every sigma
+        # with it (HELD_NEAR_BOUND). The others' covariance with it held there, as an active constraint; its own
+        # sigma None (a zero variance, covariance_summary)
         cov_x, pd, min_eig = covariance_from_hessian(H, held=edge)
         held = [n for n, e in zip(display_names(problem), edge) if e]
     out = covariance_summary(problem, x, cov_x, pd)
