@@ -65,14 +65,19 @@ def hazy_atmosphere():
     return a.replace(mie_extinction=ext, mie_scattering=0.9 * ext, mie_g=torch.tensor(0.82, dtype=torch.float64))
 
 
-def orders_2_up(atm, sizes: dict, quad: dict) -> tuple[torch.Tensor, float]:
+def view_geometry(atm) -> tuple[torch.Tensor, ...]:
+    """(r, mu, mu_s, nu) of a ground observer's :data:`VIEWS` with the sun at :data:`SUN_ZENITH_DEG`."""
     sz = math.radians(SUN_ZENITH_DEG)
     el = torch.tensor([v[0] for v in VIEWS], dtype=torch.float64)
     az = torch.deg2rad(torch.tensor([v[1] for v in VIEWS], dtype=torch.float64))
     vz = torch.deg2rad(90.0 - el)
     mu, mu_s = torch.sin(torch.deg2rad(el)), torch.full_like(el, math.cos(sz))
     nu = torch.cos(vz) * math.cos(sz) + torch.sin(vz) * math.sin(sz) * torch.cos(az)
-    r = torch.full_like(mu, float(atm.bottom_radius) + 1.0)
+    return torch.full_like(mu, float(atm.bottom_radius) + 1.0), mu, mu_s, nu
+
+
+def orders_2_up(atm, sizes: dict, quad: dict) -> tuple[torch.Tensor, float]:
+    r, mu, mu_s, nu = view_geometry(atm)
     t0 = time.process_time()
     with torch.no_grad():
         tab = precompute(atm, orders=4, sizes=TableSizes(**{**PHOTO, **sizes}), quadrature=Quadrature(**quad), progress=False)
@@ -84,13 +89,7 @@ def orders_2_up(atm, sizes: dict, quad: dict) -> tuple[torch.Tensor, float]:
 def each_order(atm, theta: int, phi: int) -> list[torch.Tensor]:
     """Orders 2, 3, 4 apart (sky_radiance with 2, 3, 4 orders minus the one below; ground included) at 570 nm, tables
     of mu 128 with Gauss rays and ``theta`` x ``phi`` density directions."""
-    sz = math.radians(SUN_ZENITH_DEG)
-    el = torch.tensor([v[0] for v in VIEWS], dtype=torch.float64)
-    az = torch.deg2rad(torch.tensor([v[1] for v in VIEWS], dtype=torch.float64))
-    vz = torch.deg2rad(90.0 - el)
-    mu, mu_s = torch.sin(torch.deg2rad(el)), torch.full_like(el, math.cos(sz))
-    nu = torch.cos(vz) * math.cos(sz) + torch.sin(vz) * math.sin(sz) * torch.cos(az)
-    r = torch.full_like(mu, float(atm.bottom_radius) + 1.0)
+    r, mu, mu_s, nu = view_geometry(atm)
     with torch.no_grad():
         tab = precompute(atm, orders=4, sizes=TableSizes(**{**PHOTO, "scattering_mu": 128}), keep_orders=True,
                          quadrature=Quadrature(ray_rule="gauss", density_theta=theta, density_phi=phi), progress=False)

@@ -18,8 +18,8 @@ each parameter's range, e.g. g in (-1, 1)).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 import time
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -90,10 +90,10 @@ or 1 sits on its bound. [1]"""
 
 
 def bound_slots(problem: FitProblem, x: Tensor, within: float = AT_BOUND) -> list[bool]:
-    """Whether each slot of x (P,) sits on a bound of its range (``within`` of it in u: :data:`AT_BOUND`). There the transform's slope is 0
-    (the sigmoid saturates, and is clamped beyond :data:`skyfit.fit.parameters.SIGMOID_EDGE`), so the delta method's
-    physical sigma is about 0 whatever the data allow: the likelihood is not Gaussian there, and only the interval
-    (x +- z sigma_x mapped, which reaches from inside the range to the bound) describes it."""
+    """Whether each slot of x (P,) sits on a bound of its range (``within`` of it in u; :data:`AT_BOUND`). There the
+    transform's slope is 0 (the sigmoid saturates, and is clamped beyond :data:`skyfit.fit.parameters.SIGMOID_EDGE`),
+    so the delta method's physical sigma is about 0 whatever the data allow: the likelihood is not Gaussian there, and
+    only the interval (x +- z sigma_x mapped, which reaches from inside the range to the bound) describes it."""
     p = problem.param
     out = [False] * x.numel()
     for n in p.free:

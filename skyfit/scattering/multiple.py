@@ -98,7 +98,7 @@ class Quadrature:
             split in two (2017: 0, none). A view near the zenith has the forward peak of a hazy
             aerosol's phase (g 0.8) at the grid's pole, where the midpoint rule's nearest nodes sit
             half a band away on one ring: 16 x 32 put a hazy sky's orders >= 2 16 % high at the zenith
-            (sun at 23 deg), 2 split bands (576 directions instead of 512) within 0.5 %, as 32 x 32 (1024)
+            (sun at 23 deg), 2 split bands (576 directions instead of 512) within 1 %, as 32 x 32 (1024)
             does (docs/multiple_scattering.md, "The density directions' pole").
         irradiance_theta, irradiance_phi: midpoint rule over the upper hemisphere for the
             indirect irradiance, theta in [0, pi/2] (2017: 16 x 64).
