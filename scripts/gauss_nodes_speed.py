@@ -1,29 +1,43 @@
 #!/usr/bin/env python
-"""Side by side (docs/benchmarks.md, "Third pass: the Gauss nodes cached"): Bruneton build (PHOTO_TABLES, 6 wavelengths, float32, 2 threads) with the Gauss-Legendre rule
-recomputed per call (before) and cached (after), alternating, 5 pairs."""
-import time, torch, numpy as np
-torch.set_num_threads(2)
+"""A photo fit's Bruneton build with the Gauss-Legendre view-ray rule recomputed by numpy's leggauss per chunk
+(before session 15) and taken from skyfit.quadrature's cache (now), side by side (docs/benchmarks.md, "Third pass: the
+Gauss nodes cached"): the builds of scripts/density_cost.py (PHOTO_TABLES, 6 wavelengths, float32), alternating, a
+first round dropped.
+
+    .venv/bin/python scripts/gauss_nodes_speed.py [--threads 2] [--rounds 5]
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from density_cost import alternate, photo_atmosphere, photo_build, photo_build_args
+
 import skyfit.scattering.multiple as M
-from skyfit.atmosphere.config import atmosphere_from_config, load_yaml
-from skyfit.scattering.bruneton_tables import TableSizes
-from skyfit.fit.photo import PHOTO_TABLES
-cached = M.ray_nodes
-def uncached(n, rule, dtype, device):
+
+
+def uncached(n: int, rule: str, dtype, device):
+    """``ray_nodes`` as it was: the Gauss-Legendre rule from numpy on every call (the same numbers)."""
     if rule == "trapezoid":
         return M._trapezoid(n, dtype, device)
     t, w = np.polynomial.legendre.leggauss(n + 1)
     return torch.as_tensor(0.5 * (t + 1.0), dtype=dtype, device=device), torch.as_tensor(0.5 * w, dtype=dtype, device=device)
-atm = atmosphere_from_config(load_yaml('skyfit/configs/earth_hazy.yaml'), np.linspace(440, 660, 6), dtype=torch.float32)
-sizes = TableSizes(*PHOTO_TABLES)
-out = {"before": [], "after": []}
-for rep in range(6):
-    for name, fn in (("before", uncached), ("after", cached)):
-        M.ray_nodes = fn
-        t = time.perf_counter()
-        with torch.no_grad():
-            M.precompute(atm, orders=4, sizes=sizes, quadrature=M.Quadrature(ray_rule="gauss"), progress=False)
-        if rep:
-            out[name].append(time.perf_counter() - t)
-for k, v in out.items():
-    print(k, "median %.2f s" % np.median(v), [round(x, 2) for x in v])
-print("ratio after/before of medians %.3f" % (np.median(out["after"]) / np.median(out["before"])))
+
+
+def main() -> None:
+    args = photo_build_args(__doc__.splitlines()[0])
+    cached, atm = M.ray_nodes, photo_atmosphere()
+
+    def with_nodes(fn):
+        def build() -> None:
+            M.ray_nodes = fn
+            photo_build(atm, M.Quadrature(ray_rule="gauss"))
+        return build
+
+    seconds = alternate({"before": with_nodes(uncached), "after": with_nodes(cached)}, args.rounds)
+    for name, v in seconds.items():
+        print(name, "median %.2f s" % np.median(v), [round(x, 2) for x in v])
+    print("ratio after/before of medians %.3f" % (np.median(seconds["after"]) / np.median(seconds["before"])))
+
+
+if __name__ == "__main__":
+    main()

@@ -47,11 +47,11 @@ SETTINGS = [  # (label, table sizes changed from the photo fit's, quadrature)
     ("Gauss rays, mu 128, density 24 x 32", {"scattering_mu": 128}, {"ray_rule": "gauss", "density_theta": 24, "density_phi": 32}),
     ("Gauss rays, mu 128, density 32 x 16", {"scattering_mu": 128}, {"ray_rule": "gauss", "density_theta": 32, "density_phi": 16}),
     ("Gauss rays, mu 128, density 16 x 64", {"scattering_mu": 128}, {"ray_rule": "gauss", "density_theta": 16, "density_phi": 64}),
+    ("Gauss rays, mu 128, density 16 x 32, 2 zenith bands split (the photo fit's since session 15)",
+     {"scattering_mu": 128}, {"ray_rule": "gauss", "density_zenith": 2}),
 ]
-SETTINGS.append(("Gauss rays, mu 128, density 16 x 32, 2 zenith bands split (the photo fit's since session 15)",
-                 {"scattering_mu": 128}, {"ray_rule": "gauss", "density_zenith": 2}))
 SUN_ZENITH_DEG = 23.0
-"""The sun's zenith angle of every setting and the reference (``--sun``). [deg]"""
+"""The sun's zenith angle of every setting and the reference unless ``--sun`` says otherwise. [deg]"""
 BY_ORDER = [(16, 32), (32, 32), (8, 16)]
 """``--by-order``: density directions (theta, phi) whose orders 2, 3 and 4 are each compared with the same order of
 the generator's tables (mu 128, Gauss rays, 32 x 64)."""
@@ -65,9 +65,9 @@ def hazy_atmosphere():
     return a.replace(mie_extinction=ext, mie_scattering=0.9 * ext, mie_g=torch.tensor(0.82, dtype=torch.float64))
 
 
-def view_geometry(atm) -> tuple[torch.Tensor, ...]:
-    """(r, mu, mu_s, nu) of a ground observer's :data:`VIEWS` with the sun at :data:`SUN_ZENITH_DEG`."""
-    sz = math.radians(SUN_ZENITH_DEG)
+def view_geometry(atm, sun_deg: float) -> tuple[torch.Tensor, ...]:
+    """(r, mu, mu_s, nu) of a ground observer's :data:`VIEWS` with the sun at zenith angle ``sun_deg``."""
+    sz = math.radians(sun_deg)
     el = torch.tensor([v[0] for v in VIEWS], dtype=torch.float64)
     az = torch.deg2rad(torch.tensor([v[1] for v in VIEWS], dtype=torch.float64))
     vz = torch.deg2rad(90.0 - el)
@@ -76,8 +76,8 @@ def view_geometry(atm) -> tuple[torch.Tensor, ...]:
     return torch.full_like(mu, float(atm.bottom_radius) + 1.0), mu, mu_s, nu
 
 
-def orders_2_up(atm, sizes: dict, quad: dict) -> tuple[torch.Tensor, float]:
-    r, mu, mu_s, nu = view_geometry(atm)
+def orders_2_up(atm, sizes: dict, quad: dict, sun_deg: float) -> tuple[torch.Tensor, float]:
+    r, mu, mu_s, nu = view_geometry(atm, sun_deg)
     t0 = time.process_time()
     with torch.no_grad():
         tab = precompute(atm, orders=4, sizes=TableSizes(**{**PHOTO, **sizes}), quadrature=Quadrature(**quad), progress=False)
@@ -86,10 +86,10 @@ def orders_2_up(atm, sizes: dict, quad: dict) -> tuple[torch.Tensor, float]:
     return (every - first)[:, WAVELENGTHS.index(570.0)], time.process_time() - t0
 
 
-def each_order(atm, theta: int, phi: int) -> list[torch.Tensor]:
+def each_order(atm, theta: int, phi: int, sun_deg: float) -> list[torch.Tensor]:
     """Orders 2, 3, 4 apart (sky_radiance with 2, 3, 4 orders minus the one below; ground included) at 570 nm, tables
     of mu 128 with Gauss rays and ``theta`` x ``phi`` density directions."""
-    r, mu, mu_s, nu = view_geometry(atm)
+    r, mu, mu_s, nu = view_geometry(atm, sun_deg)
     with torch.no_grad():
         tab = precompute(atm, orders=4, sizes=TableSizes(**{**PHOTO, "scattering_mu": 128}), keep_orders=True,
                          quadrature=Quadrature(ray_rule="gauss", density_theta=theta, density_phi=phi), progress=False)
@@ -98,14 +98,14 @@ def each_order(atm, theta: int, phi: int) -> list[torch.Tensor]:
     return [up_to[k] - up_to[k - 1] for k in (1, 2, 3)]
 
 
-def by_order(atm) -> dict:
+def by_order(atm, sun_deg: float) -> dict:
     """Each order's ratio to the generator's density directions (32 x 64) for :data:`BY_ORDER`, and the share of
     orders 3 and 4 in orders >= 2 there."""
-    base = each_order(atm, 32, 64)
+    base = each_order(atm, 32, 64, sun_deg)
     out = {"share_orders_3_4": [float(x) for x in (base[1] + base[2]) / sum(base)], "rows": []}
     print("orders 3 + 4 of orders >= 2: " + " ".join(f"{x:.3f}" for x in out["share_orders_3_4"]), flush=True)
     for theta, phi in BY_ORDER:
-        d = each_order(atm, theta, phi)
+        d = each_order(atm, theta, phi, sun_deg)
         row = {"density": [theta, phi], "order_over_32x64": [[float(x) for x in d[k] / base[k]] for k in range(3)]}
         out["rows"].append(row)
         print(f"density {theta} x {phi}: " + " | ".join(" ".join(f"{x:.3f}" for x in o) for o in row["order_over_32x64"]),
@@ -121,22 +121,21 @@ def main() -> None:
                     "of BY_ORDER against 32 x 64 (mu 128, Gauss rays): the JSON's by_order")
     ap.add_argument("--sun", type=float, default=SUN_ZENITH_DEG, help="the sun's zenith angle [deg] (default %(default)s)")
     args = ap.parse_args()
-    globals()["SUN_ZENITH_DEG"] = args.sun
     torch.set_num_threads(args.threads)
     atm = hazy_atmosphere()
-    ref, ref_cpu = orders_2_up(atm, *REFERENCE)
+    ref, ref_cpu = orders_2_up(atm, *REFERENCE, args.sun)
     print(f"reference ({ref_cpu:.0f} s CPU); views (elevation, azimuth from the sun): {VIEWS}", flush=True)
     rows = []
     for label, sizes, quad in SETTINGS:
-        v, cpu = orders_2_up(atm, sizes, quad)
+        v, cpu = orders_2_up(atm, sizes, quad, args.sun)
         ratio = [float(x) for x in v / ref]
         rows.append({"setting": label, "sizes": {**PHOTO, **sizes}, "quadrature": quad, "cpu_s": cpu, "over_reference": ratio})
         print(f"{label:30s} {cpu:6.1f} s CPU  " + " ".join(f"{x:.3f}" for x in ratio), flush=True)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"views": VIEWS, "sun_zenith_deg": SUN_ZENITH_DEG, "reference": {"sizes": {**PHOTO, **REFERENCE[0]}, "quadrature": REFERENCE[1],
+    out.write_text(json.dumps({"views": VIEWS, "sun_zenith_deg": args.sun, "reference": {"sizes": {**PHOTO, **REFERENCE[0]}, "quadrature": REFERENCE[1],
                                                              "orders_2_up_570nm": [float(x) for x in ref], "cpu_s": ref_cpu},
-                               "rows": rows, **({"by_order": by_order(atm)} if args.by_order else {})}, indent=1))
+                               "rows": rows, **({"by_order": by_order(atm, args.sun)} if args.by_order else {})}, indent=1))
 
 
 if __name__ == "__main__":
