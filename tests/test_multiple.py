@@ -452,3 +452,65 @@ def test_gauss_ray_rule_converges_where_the_trapezoid_does_not_on_a_hazy_sky():
     trap = (single(Quadrature()) / ref - 1.0).abs().max()
     gauss = (single(Quadrature(ray_rule="gauss")) / ref - 1.0).abs().max()
     assert trap > 0.3 and gauss < 0.02, (float(trap), float(gauss))
+
+
+def _hazy(wl):
+    a = load_atmosphere("earth", wl)
+    ext = 0.3 / 1200.0 * (torch.tensor(wl, dtype=F64) / 550.0) ** -1.3
+    return a.replace(mie_extinction=ext, mie_scattering=0.9 * ext, mie_g=torch.tensor(0.82, dtype=F64))
+
+
+def test_one_suns_mu_s_window_converges_where_2017s_axis_does_not():
+    """A hazy sky (AOD 0.3, g 0.82) with the sun 50 deg from the zenith, orders 2-3 at five ground views: tables whose
+    mu_s axis spans only 45-55 deg in 6 texels agree with 2017's axis of 64 texels within 2 %; 2017's axis of 16 texels
+    (a photo fit's before the window) puts the zenith over 2x too high (the sun lies between two texels 0-45 deg
+    apart in zenith angle)."""
+    wl = [450.0, 550.0, 650.0]
+    atm = _hazy(wl)
+    q = Quadrature(ray_rule="gauss", density_theta=8, density_phi=16, density_zenith=1)
+    sun = 50.0
+    mu, mu_s, nu = _dirs([80.0, 60.0, 30.0, 0.0, 60.0], [0.0, 0.0, 0.0, 0.0, 180.0], sun)
+    r = float(atm.bottom_radius) + 1.0
+
+    def orders_2_up(n, window=None):
+        with torch.no_grad():
+            tab = precompute(atm, orders=3, sizes=TableSizes(64, 16, 8, 4, 8, 32, n, 8), quadrature=q, progress=False,
+                             mu_s_range=window)
+            return (sky_radiance(tab, None, r, mu, mu_s, nu, ground=False)
+                    - sky_radiance(tab, None, r, mu, mu_s, nu, orders=1, ground=False))
+
+    ref = orders_2_up(64)
+    window = orders_2_up(6, (math.cos(math.radians(sun + 5.0)), math.cos(math.radians(sun - 5.0))))
+    coarse = orders_2_up(16)
+    assert float((window / ref - 1.0).abs().max()) < 0.02, (window / ref).tolist()
+    assert float((coarse[3] / ref[3]).min()) > 2.0, (coarse / ref).tolist()
+
+
+def test_a_window_over_the_whole_axis_is_2017s_tables_and_lookups_outside_it_are_refused(earth2):
+    """mu_s_range (mu_s_min, 1) gives 2017's tables to rounding; tables for one sun refuse an observer's sun outside
+    their range unless told to clamp, and refuse to be exported."""
+    from skyfit.export.bruneton2017 import bruneton2017_textures
+    from skyfit.export.lut import export_luts
+
+    whole = precompute(earth2, orders=2, sizes=TINY, quadrature=TINY_QUAD, progress=False)
+    same = precompute(earth2, orders=2, sizes=TINY, quadrature=TINY_QUAD, progress=False, mu_s_range=(-0.2, 1.0))
+    for f in ("single_rayleigh", "single_mie", "multiple", "irradiance"):
+        torch.testing.assert_close(getattr(same, f), getattr(whole, f), rtol=1e-9, atol=1e-12 * float(getattr(whole, f).abs().max()))
+    lo, hi = math.cos(math.radians(40.0)), math.cos(math.radians(20.0))
+    one = precompute(earth2, orders=2, sizes=TINY, quadrature=TINY_QUAD, progress=False, mu_s_range=(lo, hi))
+    assert one.mu_s_range == (lo, hi)
+    r = float(earth2.bottom_radius) + 1.0
+    mu, mu_s, nu = _dirs([30.0], [0.0], 30.0)
+    assert torch.isfinite(sky_radiance(one, None, r, mu, mu_s, nu)).all()
+    mu, mu_s, nu = _dirs([30.0], [0.0], 60.0)
+    with pytest.raises(ValueError, match="outside the tables' mu_s_range"):
+        sky_radiance(one, None, r, mu, mu_s, nu)
+    edge = sky_radiance(one, None, r, *_dirs([30.0], [0.0], 40.0))
+    torch.testing.assert_close(sky_radiance(one, None, r, mu, mu_s, nu, below_mu_s_min="clamp")[..., 0] > 0,
+                               edge[..., 0] > 0)
+    with pytest.raises(ValueError, match="mu_s_range must be"):
+        precompute(earth2, orders=2, sizes=TINY, quadrature=TINY_QUAD, progress=False, mu_s_range=(hi, lo))
+    with pytest.raises(ValueError, match="cannot be exported"):
+        bruneton2017_textures(one)
+    with pytest.raises(ValueError, match="cannot be exported"):
+        export_luts(one, None, "/nonexistent/never-written")

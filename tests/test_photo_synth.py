@@ -281,7 +281,8 @@ def test_suite_plan_spreads_projections_brackets_aod_and_sun():
 
 def test_the_generators_tables_use_its_density_directions():
     """The sky grid's multiple scattering is that of Bruneton tables built with the settings' density directions (the
-    generator's finer Delta J, 32 x 64 by default): equal to a render from tables precomputed directly with them, and
+    generator's finer Delta J, 32 x 64 by default) and the sun's mu_s window: equal to a render from tables precomputed
+    directly with them, and
     different from one with 2017's 16 x 32 (small tables and a coarse grid keep it fast)."""
     from skyfit.fit.model import SkyModel
     from skyfit.fit.problem import FitSettings, make_model
@@ -297,7 +298,10 @@ def test_the_generators_tables_use_its_density_directions():
     coarse = ps.sky_grid(values, 40.0, ps.SynthSettings(**base, density_directions=(4, 8)))
     assert fine.info["density_directions"] == [8, 16]
     atm = ps.make_atmosphere(values, "500:600:100")
-    tables = precompute(atm, orders=2, sizes=TableSizes(*sizes), progress=False,
+    # the tables of one sun: its zenith angle +- 10 deg in 16 texels (SynthSettings.sun_window)
+    assert fine.info["sun_window"] == [10.0, 16]
+    tables = precompute(atm, orders=2, sizes=TableSizes(*sizes[:6], 16, sizes[7]), progress=False,
+                        mu_s_range=(math.cos(math.radians(50.0)), math.cos(math.radians(30.0))),
                         quadrature=Quadrature(ray_rule="gauss", density_theta=8, density_phi=16))
     model = SkyModel(make_model(FitSettings()).integrator, orders=2, multiple="bruneton", table_sizes=sizes, ray_rule="gauss")
     zen = torch.deg2rad(torch.arange(7, dtype=torch.float64) * 15.0)

@@ -55,6 +55,7 @@ from ..camera.icc import icc_sensitivities
 from ..camera.masks import SUN_MASK_MAX_DEG, grow_outlier_mask, obstacle_mask, sun_mask
 from ..camera.sun import parse_location, parse_time, sun_position
 from ..io.photo import LinearPhoto, block_view, exif_location, exif_stamps, read_photo, reduced_photo
+from ..scattering.bruneton_tables import MU_S_MIN_DEFAULT
 from .data import Observation
 from .model import FitProblem, aerosol_log_depth, applied_lens, lens_directions, tilt_directions
 from .optimise import curved, resolved_method
@@ -1515,6 +1516,38 @@ def interpolation_matrix(wavelengths: torch.Tensor, index: np.ndarray) -> torch.
     return m
 
 
+MS_SUN_MARGIN_DEG = 5.0
+"""Bruneton's tables of a fit whose suns are fixed (no ``sun_zenith_offset`` free) span the suns' zenith angles and this
+much beyond on either side (:func:`sun_window`), instead of 2017's whole axis from mu_s_min to 1. [deg]"""
+MS_SUN_SPACING_DEG = 2.0
+"""The largest spacing in sun zenith angle between the mu_s texels of :func:`sun_window`'s tables (six texels for one
+sun). 2017's axis spends its texels near the horizon: with the photo fit's 16 a sun 20-35 deg from the zenith lies between
+two texels 0.975 and 0.999 of the axis apart, and a hazy sky's orders >= 2 (AOD 0.3, g 0.82) came out 2.3x the converged
+value at the zenith with the sun at 50 deg and 0.64-2.3x over 8 views at 23 deg; one sun's window of 6 texels agrees
+with 8 and with a 10 deg margin within 1.3 % at sun zeniths 23, 50, 70 and 80 deg, and with 2017's axis of 64 texels
+within 1.3 % where that has converged (50, 70, 80 deg), for 0.4x the build
+(scripts/ms_sun_window.py, docs/multiple_scattering.md "One sun's mu_s window"). [deg]"""
+
+
+def sun_window(problem: FitProblem, x: torch.Tensor, texels: int) -> tuple[tuple[float, float] | None, int]:
+    """The sun zenith cosines (lo, hi) and texel count of Bruneton tables for ``problem``'s suns at ``x``: their zenith
+    angles widened by :data:`MS_SUN_MARGIN_DEG`, at most :data:`MS_SUN_SPACING_DEG` apart; ``(None, texels)`` (2017's
+    axis of ``texels``) where a fitted sun zenith offset moves the sun during a fit."""
+    if "sun_zenith_offset" in problem.param.free or not problem.observations:
+        return None, texels
+    with torch.no_grad():
+        ph = problem.param.to_physical(x)
+        zen = [torch.rad2deg(torch.arccos(problem.sun_vectors(ph, i).reshape(-1, 3)[:, 2].clamp(-1.0, 1.0)))
+               for i in range(len(problem.observations))]
+    lo_deg = max(0.0, min(float(z.min()) for z in zen) - MS_SUN_MARGIN_DEG)
+    hi_deg = min(180.0, max(float(z.max()) for z in zen) + MS_SUN_MARGIN_DEG)
+    lo, hi = max(math.cos(math.radians(hi_deg)), MU_S_MIN_DEFAULT), math.cos(math.radians(lo_deg))
+    if not hi > lo:
+        return None, texels
+    n = int(math.ceil((hi_deg - lo_deg) / MS_SUN_SPACING_DEG - 1e-9)) + 1
+    return (lo, hi), max(n, 2)
+
+
 def freeze_tables(problem: FitProblem, x: torch.Tensor, bruneton: "SkyModel | None" = None,
                   wavelength_nodes_count: int | None = MS_WAVELENGTH_NODES) -> None:
     """Multiple scattering at ``x`` (no gradient), used until refreshed.
@@ -1543,8 +1576,10 @@ def freeze_tables(problem: FitProblem, x: torch.Tensor, bruneton: "SkyModel | No
                     return [build(at)[0] for at in points]
                 atm = subs[0] if joint is None else joint
                 narrow = MS_TABLE_DTYPE is not None and MS_TABLE_DTYPE != atm.wavelengths.dtype
+                sizes = TableSizes(*(bruneton.table_sizes or bruneton.REDUCED_TABLES))
+                mu_s_range, n_mu_s = sun_window(problem, points[0], sizes.scattering_mu_s)
                 tables = precompute(atm.to(dtype=MS_TABLE_DTYPE) if narrow else atm, orders=bruneton.orders,
-                                    sizes=TableSizes(*(bruneton.table_sizes or bruneton.REDUCED_TABLES)),
+                                    sizes=dataclasses.replace(sizes, scattering_mu_s=n_mu_s), mu_s_range=mu_s_range,
                                     quadrature=bruneton.quadrature(), progress=False)
                 parts = [tables] if joint is None else split_tables(tables, subs)
                 if narrow:

@@ -179,8 +179,38 @@ def mu_s_from_unit(x: Tensor, bottom: float, top: float, mu_s_min: float) -> Ten
     return torch.clamp(mu_s, -1.0, 1.0)
 
 
+FULL_MU_S = (0.0, 1.0)
+"""The mu_s axis over all of :func:`mu_s_unit`'s range, ``mu_s_min`` to 1 (2017's tables)."""
+
+
+def mu_s_window(lo: float, hi: float, bottom: float, top: float, mu_s_min: float) -> tuple[float, float]:
+    """The range of :func:`mu_s_unit`'s coordinate between the sun zenith cosines ``lo`` < ``hi`` (clipped to
+    [mu_s_min, 1]): a table's mu_s axis over one sun's elevations instead of all (:func:`mu_s_index`)."""
+    x = mu_s_unit(torch.tensor([max(lo, mu_s_min), min(hi, 1.0)], dtype=torch.float64), bottom, top, mu_s_min)
+    a, b = float(x[0]), float(x[1])
+    if not b > a:
+        raise ValueError(f"an empty mu_s window: sun zenith cosines {lo} to {hi} with mu_s_min {mu_s_min}")
+    return a, b
+
+
+def mu_s_index(mu_s: Tensor, bottom: float, top: float, mu_s_min: float, n: int,
+               window: tuple[float, float] = FULL_MU_S) -> Tensor:
+    """Continuous texel index on a table's mu_s axis of ``n`` texels: :func:`mu_s_unit`'s coordinate, the first and
+    last texels at the ends of ``window`` (a range of that coordinate; :data:`FULL_MU_S`: 2017's axis, bit for bit).
+
+    A window is this project's, not 2017's: a scene with one sun needs its tables only at sun zenith angles near that
+    sun's, and 2017's axis gives a high sun about one texel (the mapping spends its range near the horizon: 20-35 deg
+    from the zenith is 0.975-0.999 of it). Lookups outside the window take its edge texel's value."""
+    x = mu_s_unit(mu_s, bottom, top, mu_s_min)
+    lo, hi = window
+    if (float(lo), float(hi)) != FULL_MU_S:
+        x = (x - lo) / (hi - lo)
+    return x * (n - 1)
+
+
 def scattering_index(
-    r: Tensor, mu: Tensor, mu_s: Tensor, nu: Tensor, hits_ground: Tensor, bottom: float, top: float, mu_s_min: float, sizes: TableSizes
+    r: Tensor, mu: Tensor, mu_s: Tensor, nu: Tensor, hits_ground: Tensor, bottom: float, top: float, mu_s_min: float, sizes: TableSizes,
+    mu_s_window: tuple[float, float] = FULL_MU_S,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Continuous texel indices (i_r, i_mu, i_mu_s, i_nu) (2017 GetScatteringTextureUvwzFromRMuMuSNu).
 
@@ -189,6 +219,7 @@ def scattering_index(
         mu, mu_s, nu: view zenith, sun zenith and view-sun cosines, shape (...). [1]
         hits_ground: whether the ray (r, mu) hits the ground, bool shape (...); decides the half
             of the mu axis (the horizon discontinuity of Bruneton & Neyret 2008 Sec. 4).
+        mu_s_window: the range of :func:`mu_s_unit`'s coordinate the mu_s axis spans (:func:`mu_s_index`).
     """
     rho, H = _horizon_distances(r, bottom, top)
     x_r = rho / H
@@ -205,12 +236,11 @@ def scattering_index(
     x_t = (d_t - (top - r)) / (rho + H - (top - r))
     i_mu_t = half + (half - 1) * x_t
     i_mu = torch.where(hits_ground, i_mu_g, i_mu_t)
-    x_mu_s = mu_s_unit(mu_s, bottom, top, mu_s_min)
     x_nu = (nu + 1.0) / 2.0
     return (
         x_r * (sizes.scattering_r - 1),
         i_mu,
-        x_mu_s * (sizes.scattering_mu_s - 1),
+        mu_s_index(mu_s, bottom, top, mu_s_min, sizes.scattering_mu_s, mu_s_window),
         x_nu * (sizes.scattering_nu - 1),
     )
 
@@ -230,7 +260,8 @@ class ScatteringTexels:
     hits_ground: Tensor
 
 
-def scattering_texel_params(bottom: float, top: float, mu_s_min: float, sizes: TableSizes, dtype, device) -> ScatteringTexels:
+def scattering_texel_params(bottom: float, top: float, mu_s_min: float, sizes: TableSizes, dtype, device,
+                            mu_s_window: tuple[float, float] = FULL_MU_S) -> ScatteringTexels:
     R, MU, MUS, NU = sizes.scattering_shape
     half = MU // 2
     H = math.sqrt(top * top - bottom * bottom)
@@ -249,7 +280,8 @@ def scattering_texel_params(bottom: float, top: float, mu_s_min: float, sizes: T
     safe_t = torch.where(d_t > 0, d_t, torch.ones_like(d_t))
     mu_t = torch.where(d_t > 0, (H * H - rho * rho - d_t * d_t) / (2.0 * r * safe_t), torch.ones_like(d_t))
     mu = torch.clamp(torch.where(ground, mu_g, mu_t), -1.0, 1.0)  # (R, MU)
-    mu_s = mu_s_from_unit(lin(MUS), bottom, top, mu_s_min)  # (MUS,)
+    x_mu_s = lin(MUS) if tuple(mu_s_window) == FULL_MU_S else mu_s_window[0] + (mu_s_window[1] - mu_s_window[0]) * lin(MUS)
+    mu_s = mu_s_from_unit(x_mu_s, bottom, top, mu_s_min)  # (MUS,)
     nu = lin(NU) * 2.0 - 1.0  # (NU,)
     shape = (R, MU, MUS, NU)
     r4 = r[:, :, None, None].expand(shape)

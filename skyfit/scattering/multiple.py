@@ -72,7 +72,9 @@ from .bruneton_tables import (
     interpolate_planned,
     irradiance_index,
     irradiance_texel_params,
-    mu_s_unit,
+    FULL_MU_S,
+    mu_s_index,
+    mu_s_window,
     scattering_index,
     scattering_texel_params,
     transmittance_index,
@@ -158,6 +160,9 @@ class PrecomputedAtmosphere:
         atm: the atmosphere the tables were computed from.
         orders: number of scattering orders N included (1 = single only).
         sizes, quadrature, mu_s_min: the settings used.
+        mu_s_range, mu_s_window: the sun zenith cosines the scattering tables span when built for one sun's
+            (:func:`precompute`'s ``mu_s_range``; None: mu_s_min to 1) and that range in
+            :func:`~skyfit.scattering.bruneton_tables.mu_s_unit`'s coordinate.
         transmittance_columns: (n_r, n_mu, 3) optical lengths to the top. [m]
         direct_irradiance: (n_r, n_mu_s, W) Delta E of order 0. [W/(m^2 nm)]
         irradiance: (n_r, n_mu_s, W) sum of indirect Delta E, orders 1..N-1 (zeros if N = 1).
@@ -182,6 +187,8 @@ class PrecomputedAtmosphere:
     order_scattering: list[Tensor] | None = None
     order_irradiance: list[Tensor] | None = None
     timings: dict = dataclasses.field(default_factory=dict)
+    mu_s_window: tuple[float, float] = FULL_MU_S
+    mu_s_range: tuple[float, float] | None = None
 
     def sky_radiance(self, r, mu, mu_s, nu, **kwargs) -> Tensor:
         """:func:`sky_radiance` with this table's atmosphere."""
@@ -217,7 +224,7 @@ class PrecomputedAtmosphere:
         return direct, indirect
 
     def _ctx(self, atm: Atmosphere | None = None) -> "_Ctx":
-        return _Ctx(self.transmittance_columns, self.atm if atm is None else atm, self.sizes, self.mu_s_min)
+        return _Ctx(self.transmittance_columns, self.atm if atm is None else atm, self.sizes, self.mu_s_min, self.mu_s_window)
 
     def nbytes(self) -> int:
         ts = [self.transmittance_columns, self.direct_irradiance, self.irradiance, self.single_rayleigh, self.single_mie]
@@ -249,12 +256,13 @@ def _step(chunk_bytes: float, per_item_floats: float, itemsize: int) -> int:
 
 
 class _Ctx(NamedTuple):
-    """What lookups need: the optical-length table, the atmosphere, the sizes and mu_s_min."""
+    """What lookups need: the optical-length table, the atmosphere, the sizes, mu_s_min and the mu_s axis's window."""
 
     tc: Tensor
     atm: Atmosphere
     sizes: TableSizes
     mu_s_min: float
+    mu_s_window: tuple[float, float] = FULL_MU_S
 
 
 def _columns(ctx: _Ctx, r: Tensor, mu: Tensor) -> Tensor:
@@ -306,7 +314,7 @@ def _direct_irradiance_from(ctx: _Ctx, r: Tensor, mu_s: Tensor) -> Tensor:
 
 def _scat_index(ctx: _Ctx, r, mu, mu_s, nu, hits):
     atm = ctx.atm
-    return scattering_index(r, mu, mu_s, nu, hits, atm.bottom_radius, atm.top_radius, ctx.mu_s_min, ctx.sizes)
+    return scattering_index(r, mu, mu_s, nu, hits, atm.bottom_radius, atm.top_radius, ctx.mu_s_min, ctx.sizes, ctx.mu_s_window)
 
 
 def _order_radiance(ctx, tables: tuple[Tensor, ...], order: int, r, mu, mu_s, nu, hits) -> Tensor:
@@ -514,7 +522,7 @@ def _sun_grid(ctx: _Ctx, rays, quad: Quadrature, i: int, j: int) -> Tensor:
     for a in range(0, j - i, step):  # bounded temporaries
         b = min(a + step, j - i)
         mus_d = torch.clamp((r[a:b, :, None] * mus[a:b, None, :] + d[a:b, :, None] * nu[a:b, None, :]) / r_d[a:b, :, None], -1.0, 1.0)
-        out[a:b] = grid_coordinate(mu_s_unit(mus_d, ctx.atm.bottom_radius, ctx.atm.top_radius, ctx.mu_s_min) * (MUS - 1), MUS)
+        out[a:b] = grid_coordinate(mu_s_index(mus_d, ctx.atm.bottom_radius, ctx.atm.top_radius, ctx.mu_s_min, MUS, ctx.mu_s_window), MUS)
     return out
 
 
@@ -815,7 +823,7 @@ def _multiple_scattering_table(ctx, geo: _Geometry, density: Tensor, t_view: Ten
         with torch.no_grad():  # geometry
             _, r_d, mu_d = _ray_samples(ctx, geo.rays, quad, i, j)
             i_r, i_mu, _, _ = scattering_index(r_d, mu_d, mus[i:j, :1], nu[i:j, :1], g[i:j].expand_as(r_d),
-                                               atm.bottom_radius, atm.top_radius, ctx.mu_s_min, sizes)
+                                               atm.bottom_radius, atm.top_radius, ctx.mu_s_min, sizes, ctx.mu_s_window)
             ix, w, _ = corner_plan((R, MU), (i_r, i_mu))  # (G S, 4)
             gy = geo.sun_grid[i:j]  # (G, S, T)
             grid_sn = torch.stack([gx_nu[i:j, None, :].expand_as(gy), gy], -1).reshape(n_g * n_s, n_t, 1, 2)
@@ -835,6 +843,7 @@ def precompute(
     sizes: TableSizes | None = None,
     quadrature: Quadrature | None = None,
     mu_s_min: float = MU_S_MIN_DEFAULT,
+    mu_s_range: tuple[float, float] | None = None,
     keep_orders: bool = False,
     chunk_bytes: float | None = None,
     checkpointing: bool | None = None,
@@ -855,6 +864,12 @@ def precompute(
         sizes: table resolutions (default :class:`TableSizes`, 2017's).
         quadrature: sample counts (default :class:`Quadrature`, 2017's).
         mu_s_min: lowest sun zenith cosine in the scattering tables, in (-1, 0). [1]
+        mu_s_range: (lo, hi) sun zenith cosines the scattering tables' mu_s axis spans instead of mu_s_min to 1
+            (:func:`~skyfit.scattering.bruneton_tables.mu_s_index`): tables for one sun, whose texels all lie near
+            it. Lookups outside the range take its edge's value (:func:`sky_radiance` refuses an observer's sun
+            outside it unless told to clamp); the orders' own lookups leave it along long rays high in the
+            atmosphere, so give a margin around the sun (:data:`skyfit.fit.photo.MS_SUN_MARGIN_DEG`). None: 2017's
+            axis. [1]
         keep_orders: also keep every order's Delta S and Delta E (for analysis).
         chunk_bytes: approximate working memory per chunk of texels, which bounds peak memory;
             default 128 MB on CPU, 2 GB on CUDA (with 128 MB chunks an H200 took 40 s instead of 4 s).
@@ -871,6 +886,13 @@ def precompute(
         raise ValueError(f"mu_s_min must be in (-1, 0), got {mu_s_min}")
     sizes = TableSizes() if sizes is None else sizes
     quad = Quadrature() if quadrature is None else quadrature
+    window = FULL_MU_S
+    if mu_s_range is not None:
+        lo, hi = (float(v) for v in mu_s_range)
+        if not (mu_s_min <= lo < hi <= 1.0):
+            raise ValueError(f"mu_s_range must be (lo, hi) with mu_s_min = {mu_s_min} <= lo < hi <= 1, got {mu_s_range!r}")
+        mu_s_range = (lo, hi)
+        window = mu_s_window(lo, hi, atm.bottom_radius, atm.top_radius, mu_s_min)
     if chunk_bytes is None:
         chunk_bytes = 2e9 if atm.device.type == "cuda" else 128e6
     if checkpointing is None:
@@ -893,11 +915,11 @@ def precompute(
 
     with bar:
         tc = transmittance_columns_table(atm, sizes, quad.transmittance_samples, chunk_bytes, checkpointing)
-        ctx = _Ctx(tc, atm, sizes, mu_s_min)
+        ctx = _Ctx(tc, atm, sizes, mu_s_min, window)
         lap("transmittance")
         direct = _direct_irradiance_table(ctx, sizes)
         lap("direct_irradiance")
-        texels = scattering_texel_params(atm.bottom_radius, atm.top_radius, mu_s_min, sizes, atm.dtype, atm.device)
+        texels = scattering_texel_params(atm.bottom_radius, atm.top_radius, mu_s_min, sizes, atm.dtype, atm.device, window)
         geo = _geometry(ctx, texels, quad, orders >= 2)
         lap("geometry")
         s_r, s_m = _single_scattering_table(ctx, geo, quad, chunk_bytes, checkpointing)
@@ -941,6 +963,8 @@ def precompute(
         order_scattering=kept_s if keep_orders else None,
         order_irradiance=kept_e if keep_orders else None,
         timings=timings,
+        mu_s_window=window,
+        mu_s_range=mu_s_range,
     )
 
 
@@ -1023,6 +1047,12 @@ def sky_radiance(
             f"sun zenith cosine {float(mu_s1[below].min()):.4f} at the observer is below the tables' "
             f"mu_s_min = {tables.mu_s_min}; precompute with a lower mu_s_min or pass below_mu_s_min='clamp' or 'zero'"
         )
+    if tables.mu_s_range is not None and below_mu_s_min == "raise":
+        lo, hi = tables.mu_s_range
+        out = valid & ((mu_s1 < lo - 1e-9) | (mu_s1 > hi + 1e-9))
+        if bool(out.any()):
+            raise ValueError(f"sun zenith cosine {float(mu_s1[out][0]):.4f} at the observer is outside the tables' "
+                             f"mu_s_range ({lo:.4f}, {hi:.4f}); precompute with a wider range or pass below_mu_s_min='clamp'")
     keep = valid & ~below if below_mu_s_min == "zero" else valid
 
     if n_orders == 1:
@@ -1037,7 +1067,7 @@ def sky_radiance(
         e_ind = tables.irradiance
     else:
         e_ind = sum(tables.order_irradiance[: n_orders - 1])
-    ctx = _Ctx(tables.transmittance_columns, atm, tables.sizes, tables.mu_s_min)
+    ctx = tables._ctx(atm)
     n_w = tables.single_rayleigh.shape[-1]
 
     def fn(i: int, j: int) -> Tensor:

@@ -107,6 +107,8 @@ from ..fit.model import SkyModel
 from ..fit.parameters import Parameterisation
 from ..fit.problem import FitSettings, make_model
 from ..render.colour import spectral_to_xyz, xyz_to_linear_srgb
+from ..scattering.bruneton_tables import MU_S_MIN_DEFAULT, TableSizes
+from ..scattering.multiple import precompute
 
 __all__ = [
     "CAMERA_SENSITIVITIES",
@@ -162,6 +164,12 @@ class SynthSettings:
             (:attr:`skyfit.scattering.multiple.Quadrature.density_theta`): 32 x 64, twice 2017's 16 x 32 in each,
             which a photo fit keeps by default; 16 x 32 put a hazy sky's orders >= 2 at the zenith 1.17x a converged
             reference's, 32 x 64 1.01x (docs/multiple/hazy_convergence.json).
+        sun_window: (margin in degrees, texels): the tables' mu_s axis spans the sun's zenith angle +- margin in that many
+            texels (:func:`skyfit.scattering.multiple.precompute`'s ``mu_s_range``; it replaces ``table_sizes``' mu_s):
+            10 deg and 16 texels, 1.3 deg apart, where a photo fit's are 5 deg and 2 deg
+            (:data:`skyfit.fit.photo.MS_SUN_MARGIN_DEG`). None: 2017's axis, whose 16 texels put a hazy sky's orders
+            >= 2 at the zenith 2.3x the converged value with the sun at 50 deg (docs/multiple_scattering.md, "One sun's
+            mu_s window"); the suites before session 16 were made with it.
         zenith_step_deg, azimuth_step_deg: spacing of the sky grid in view zenith and azimuth from
             the sun's vertical plane; pixels interpolate it bilinearly. [deg]
         max_zenith_deg: the grid's largest view zenith (a tilted camera sees a little below the horizon). [deg]
@@ -173,6 +181,7 @@ class SynthSettings:
     table_sizes: tuple[int, ...] = TIGHT_TABLES
     ray_rule: str = "gauss"
     density_directions: tuple[int, int] = (32, 64)
+    sun_window: tuple[float, int] | None = (10.0, 16)
     zenith_step_deg: float = 0.25
     azimuth_step_deg: float = 0.5
     max_zenith_deg: float = 93.0
@@ -182,7 +191,8 @@ class SynthSettings:
         return {"wavelengths": self.wavelengths, "orders": self.orders, "table_sizes": list(self.table_sizes),
                 "zenith_step_deg": self.zenith_step_deg, "azimuth_step_deg": self.azimuth_step_deg,
                 "max_zenith_deg": self.max_zenith_deg, "ray_rule": self.ray_rule,
-                "density_directions": list(self.density_directions)}
+                "density_directions": list(self.density_directions),
+                **({"sun_window": list(self.sun_window)} if self.sun_window is not None else {})}
 
 
 TEST_SETTINGS = SynthSettings(wavelengths="380:760:40", orders=1, zenith_step_deg=1.0, azimuth_step_deg=2.0)
@@ -393,10 +403,20 @@ def _render_grid(values: dict, sun_zenith_deg: float, s: SynthSettings, sun_dist
     if s.orders > 1:
         model = SkyModel(integ, orders=s.orders, multiple="bruneton", table_sizes=tuple(s.table_sizes), ray_rule=s.ray_rule,
                          density_directions=tuple(s.density_directions))
-        tkey = _cache_key(akey, s.orders, list(s.table_sizes), s.ray_rule, list(s.density_directions))
+        window = None if s.sun_window is None else (float(s.sun_window[0]), int(s.sun_window[1]))
+        tkey = _cache_key(akey, s.orders, list(s.table_sizes), s.ray_rule, list(s.density_directions),
+                          *(() if window is None else (window, float(sun_zenith_deg))))  # tables of one sun
         if tkey not in _TABLE_CACHE:
             with torch.no_grad():
-                _TABLE_CACHE[tkey] = model.tables(atm)
+                if window is None:
+                    _TABLE_CACHE[tkey] = model.tables(atm)
+                else:
+                    margin, texels = window
+                    rng = (max(math.cos(math.radians(min(sun_zenith_deg + margin, 180.0))), MU_S_MIN_DEFAULT),
+                           math.cos(math.radians(max(sun_zenith_deg - margin, 0.0))))
+                    _TABLE_CACHE[tkey] = precompute(atm, orders=s.orders, progress=False, mu_s_range=rng,
+                                                    sizes=dataclasses.replace(TableSizes(*s.table_sizes), scattering_mu_s=texels),
+                                                    quadrature=model.quadrature())
             while len(_TABLE_CACHE) > 2:
                 _TABLE_CACHE.popitem(last=False)
         tables = _TABLE_CACHE[tkey]
@@ -418,6 +438,7 @@ def _render_grid(values: dict, sun_zenith_deg: float, s: SynthSettings, sun_dist
     info = {"method": "bruneton" if s.orders > 1 else "single", "orders": s.orders,
             "table_sizes": list(s.table_sizes) if s.orders > 1 else None,
             "density_directions": list(s.density_directions) if s.orders > 1 else None, "ray_rule": s.ray_rule,
+            "sun_window": list(s.sun_window) if s.orders > 1 and s.sun_window is not None else None,
             **model.integrator.settings(),
             "wavelengths_nm": [float(v) for v in atm.wavelengths.tolist()]}
     return SkyGrid(radiance, s.zenith_step_deg, s.azimuth_step_deg, (atm.solar_irradiance * t_sun).detach(),
