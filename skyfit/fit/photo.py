@@ -90,7 +90,8 @@ CALIBRATED_FREE = ("mie_aod_550", "mie_angstrom_alpha", "mie_g", "exposure", "su
 known (a file without ``saturation_red`` / ``saturation_blue`` holds them at 1, a colorimetric camera)."""
 PHOTO_TABLES = (64, 32, 16, 8, 16, 128, 16, 8)
 """Bruneton table sizes of a photo fit's multiple-scattering factor (transmittance mu, r, irradiance mu_s, r,
-scattering r, mu, mu_s, nu), built on :data:`MS_WAVELENGTH_NODES` wavelengths, with Gauss-Legendre view rays (``ray_rule: gauss`` in
+scattering r, mu, mu_s, nu; since session 16 the scattering mu_s axis spans only the photo's sun, in the texels
+:func:`sun_window` sets, instead of these 16 over 2017's axis), built on :data:`MS_WAVELENGTH_NODES` wavelengths, with Gauss-Legendre view rays (``ray_rule: gauss`` in
 :data:`PHOTO_SETTINGS`). On a hazy sky (AOD 0.3, g 0.82, sun at 23 deg) 2017's 50-interval trapezoid along the view
 ray put orders >= 2 1.43-2.18x above a converged reference (mu 128, 200 Gauss nodes, 32 x 64 density directions)
 at every elevation; the same 51 nodes by Gauss-Legendre 1.01-1.05x away from the sun, 1.17x at the zenith (the
@@ -1521,12 +1522,12 @@ MS_SUN_MARGIN_DEG = 5.0
 much beyond on either side (:func:`sun_window`), instead of 2017's whole axis from mu_s_min to 1. [deg]"""
 MS_SUN_SPACING_DEG = 2.0
 """The largest spacing in sun zenith angle between the mu_s texels of :func:`sun_window`'s tables (six texels for one
-sun). 2017's axis spends its texels near the horizon: with the photo fit's 16 a sun 20-35 deg from the zenith lies between
-two texels 0.975 and 0.999 of the axis apart, and a hazy sky's orders >= 2 (AOD 0.3, g 0.82) came out 2.3x the converged
-value at the zenith with the sun at 50 deg and 0.64-2.3x over 8 views at 23 deg; one sun's window of 6 texels agrees
-with 8 and with a 10 deg margin within 1.3 % at sun zeniths 23, 50, 70 and 80 deg, and with 2017's axis of 64 texels
-within 1.3 % where that has converged (50, 70, 80 deg), for 0.4x the build
-(scripts/ms_sun_window.py, docs/multiple_scattering.md "One sun's mu_s window"). [deg]"""
+sun). 2017's axis spends its texels near the horizon: with the photo fit's 16 (before session 16) a sun 20-35 deg from
+the zenith lay between two texels 0.975 and 0.999 of the axis apart, and a hazy sky's orders >= 2 (AOD 0.3, g 0.82)
+came out 2.28x the converged value at the zenith with the sun at 23 deg and 2.33x at 50 deg (64 texels: 1.59x and
+1.005x). One sun's window of 6 texels is within 0.2 % of the reference (+-10 deg in 21 texels) at every view with the
+sun at 23, 50, 70 and 80 deg, for 0.37-0.44x the CPU of 16 texels on 2017's axis (scripts/ms_sun_window.py,
+docs/multiple/sun_window.json, docs/multiple_scattering.md "One sun's mu_s window"). [deg]"""
 
 
 def sun_window(problem: FitProblem, x: torch.Tensor, texels: int) -> tuple[tuple[float, float] | None, int]:
