@@ -1,13 +1,14 @@
 """Orders >= 2 of Bruneton's tables on a hazy sky: 2017's mu_s axis against tables for one sun (a mu_s window).
 
     OMP_NUM_THREADS=1 .venv/bin/python scripts/ms_sun_window.py [--threads 1] [--suns 23,50,70,80] [--out docs/multiple/sun_window.json]
+    OMP_NUM_THREADS=1 .venv/bin/python scripts/ms_sun_window.py --clear --suns 23,50 --out docs/multiple/sun_window_clear.json
 
 The hazy sky, views and orders of scripts/ms_hazy_convergence.py (AOD 0.3 in a 1.2 km layer, g 0.82, a ground observer,
 6 wavelengths, 4 orders, float64; printed at 570 nm), at the photo fit's other sizes (scattering mu 128, Gauss rays,
 16 x 32 density directions with 2 zenith bands split). Each setting's orders >= 2 over the reference's: a window of the
 sun's zenith angle +- 10 deg in 21 texels (1 deg apart). Rows: 2017's axis (mu_s_min to 1) of 16, 32 and 64 texels;
 windows of margin 5, 10 and 20 deg at 2 deg spacing (the margin alone), and margin 5 deg at 4, 6 and 8 texels (the
-spacing alone). The photo fit's tables: margin 5 deg, 6 texels since session 16 (2017's 16 before).
+spacing alone). ``--clear``: the ``earth`` config as it is (a clear sky) instead of the hazy one. The photo fit's tables: margin 5 deg, 6 texels since session 16 (2017's 16 before).
 """
 from __future__ import annotations
 
@@ -26,6 +27,7 @@ sys.path.insert(0, str(ROOT / "scripts"))
 
 from ms_hazy_convergence import PHOTO, VIEWS, WAVELENGTHS, hazy_atmosphere, view_geometry  # noqa: E402
 
+from skyfit.atmosphere import load_atmosphere  # noqa: E402
 from skyfit.scattering.bruneton_tables import MU_S_MIN_DEFAULT, TableSizes  # noqa: E402
 from skyfit.scattering.multiple import Quadrature, precompute, sky_radiance  # noqa: E402
 
@@ -61,10 +63,11 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--suns", default="23,50,70,80", help="sun zenith angles [deg], comma-separated")
     ap.add_argument("--out", default="docs/multiple/sun_window.json")
+    ap.add_argument("--clear", action="store_true", help="the earth config as it is instead of the hazy sky")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    atm = hazy_atmosphere()
-    out = {"command": "scripts/ms_sun_window.py " + " ".join(sys.argv[1:]), "views": VIEWS, "wavelength_nm": 570.0,
+    atm = load_atmosphere("earth", WAVELENGTHS) if args.clear else hazy_atmosphere()
+    out = {"command": "scripts/ms_sun_window.py " + " ".join(sys.argv[1:]), "atmosphere": "earth (clear)" if args.clear else "hazy (AOD 0.3, g 0.82)", "views": VIEWS, "wavelength_nm": 570.0,
            "sizes": {**PHOTO, "scattering_mu": 128}, "quadrature": {"ray_rule": "gauss", "density_zenith": 2},
            "reference": {"setting": REFERENCE[0], "margin_deg": REFERENCE[1], "texels": REFERENCE[2]}, "suns": []}
     for sun in (float(v) for v in args.suns.split(",")):
