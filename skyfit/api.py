@@ -108,9 +108,9 @@ def render_model(accuracy: str | None = None, orders: int = 1, multiple: str = "
         return SkyModel(parse_integrator(RENDER_DEFAULTS["integrator"]), view_samples=RENDER_DEFAULTS["view_samples"],
                         rule=RENDER_DEFAULTS["rule"], spacing=RENDER_DEFAULTS["spacing"])
     if accuracy is None and orders > 1:
-        if multiple == "bruneton":  # the reference: Bruneton 2017's table sizes
+        if multiple == "bruneton":  # the reference: Bruneton 2017's table sizes, the mu_s axis for the one sun
             return SkyModel(make_model(FitSettings()).integrator, orders=orders, multiple="bruneton",
-                            table_sizes=dataclasses.astuple(TableSizes()))
+                            table_sizes=dataclasses.astuple(TableSizes()), sun_window=True)
         return make_model(FitSettings(integrator="gauss:samples=16", view_samples=32, orders=orders,
                                       multiple="hillaire", lut_size=[32, 32], lut_directions=64, lut_samples=20))
     tol = parse_accuracy(accuracy or ACCURATE)
@@ -182,18 +182,20 @@ def render(atmosphere: Atmosphere, view: FisheyeCamera | Tensor, sun=None, *, ti
             raise ValueError(f"view must be a FisheyeCamera or unit vectors of shape (N, 3), got {tuple(vec.shape)}")
         valid = torch.isfinite(vec).all(-1)
     radiance = torch.zeros(*valid.shape, atm.wavelengths.shape[0], dtype=atm.dtype, device=atm.device)
-    renderer = model.renderer(atm, altitude) if not sun_disk else _disk_renderer(model, atm, altitude)
+    zen = math.degrees(math.acos(max(-1.0, min(1.0, float(s[2])))))
+    tables = model.sun_tables(atm, zen, altitude) if model.sun_window else None
+    renderer = model.renderer(atm, altitude, tables=tables) if not sun_disk else _disk_renderer(model, atm, altitude, tables)
     radiance = radiance.index_put((valid,), renderer(vec[valid], s))
     xyz = spectral_to_xyz(radiance, atm.wavelengths)
     return Sky(radiance, xyz, xyz_to_linear_srgb(xyz), valid, atm.wavelengths,
                {**model.integrator.settings(), **model.settings()})
 
 
-def _disk_renderer(model: SkyModel, atm: Atmosphere, altitude: float):
+def _disk_renderer(model: SkyModel, atm: Atmosphere, altitude: float, tables=None):
     """The renderer with the attenuated solar disc: a Bruneton lookup option that SkyModel does not carry."""
     if model.orders == 1 or model.multiple != "bruneton":
         raise ValueError("sun_disk needs orders >= 2 with multiple='bruneton'")
-    tables = model.tables(atm)
+    tables = model.tables(atm) if tables is None else tables
     return lambda d, s: render_vectors(atm, d, s, model.integrator, altitude, model.orders, tables=tables,
                                        multiple="bruneton", ground=model.ground, sun_disk=True)
 
@@ -212,7 +214,9 @@ def envmap(source: "FitResult | Atmosphere", sun=None, *, time: str | None = Non
         sun_disk: add the solar disc (energy-conserving at any resolution).
         orders, multiple, table_sizes, accuracy, altitude, model: the renderer, as :func:`render`
             (default: 4 orders of Bruneton's tables at 2017's sizes; ``table_sizes`` R,MU,MUS,NU).
-        tables: ``model.tables(atmosphere)`` computed once, to reuse across maps of one atmosphere.
+        tables: ``model.tables(atmosphere)`` computed once, to reuse across maps of one atmosphere (the default
+            renderer builds its tables for the map's sun, :meth:`SkyModel.sun_tables`: pass 2017's, built by
+            ``model.tables``, to reuse them across suns).
     """
     from .export.envmap import render_envmap
 
@@ -224,6 +228,8 @@ def envmap(source: "FitResult | Atmosphere", sun=None, *, time: str | None = Non
         if table_sizes is not None and model.orders > 1 and model.multiple == "bruneton":
             sizes = table_sizes if isinstance(table_sizes, TableSizes) else TableSizes.parse(table_sizes)
             model = dataclasses.replace(model, table_sizes=dataclasses.astuple(sizes))
+    if tables is None and model.sun_window:
+        tables = model.sun_tables(atm, math.degrees(math.acos(max(-1.0, min(1.0, float(s[2]))))), altitude)
     fn = model.renderer(atm, altitude, tables=tables)
     meta = {"renderer": {**model.integrator.settings(), **model.settings()}, "observer_altitude_m": altitude,
             "atmosphere": atm.summary()}

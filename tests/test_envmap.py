@@ -298,3 +298,33 @@ def test_version(capsys):
 
     rc, out, _ = run(["--version"], capsys)
     assert rc == 0 and out.strip() == f"skyfit {skyfit.__version__}" == f"skyfit {version('skyfit')}"
+
+
+def test_the_default_bruneton_envmap_is_built_for_its_sun_and_matches_tables_built_so(tmp_path):
+    """skyfit.envmap's default renderer (Bruneton orders) builds its tables for the map's one sun (SkyModel.sun_window:
+    the mu_s axis over the sun's zenith angle +- 5 deg): the map equals one rendered from tables precomputed so, says
+    so in its header, and differs from 2017's axis where that axis is coarse (a hazy sky, the sun at 30 deg)."""
+    import dataclasses
+    import math
+
+    import torch
+
+    from skyfit.api import render_model
+    from skyfit.scattering.bruneton_tables import TableSizes
+    from skyfit.scattering.multiple import precompute
+
+    wl = [450.0, 550.0, 650.0]
+    a = skyfit.load_atmosphere("earth", wl)
+    ext = 0.3 / 1200.0 * (torch.tensor(wl, dtype=torch.float64) / 550.0) ** -1.3
+    atm = a.replace(mie_extinction=ext, mie_scattering=0.9 * ext, mie_g=torch.tensor(0.82, dtype=torch.float64))
+    small = (64, 16, 16, 4, 4, 16, 4, 8)
+    env = skyfit.envmap(atm, (30.0, 90.0), size=8, table_sizes=",".join(map(str, small[4:])), spectral=True)
+    assert env.meta["renderer"]["sun_window"] is True
+    model = dataclasses.replace(render_model(None, 4, "bruneton"), table_sizes=dataclasses.astuple(TableSizes())[:4] + small[4:])
+    sizes = TableSizes(*model.table_sizes)
+    one_sun = precompute(atm, orders=4, sizes=dataclasses.replace(sizes, scattering_mu_s=6), progress=False,
+                         mu_s_range=(math.cos(math.radians(35.0)), math.cos(math.radians(25.0))), quadrature=model.quadrature())
+    same = skyfit.envmap(atm, (30.0, 90.0), size=8, model=model, tables=one_sun, spectral=True)
+    np.testing.assert_allclose(env.spectral, same.spectral, rtol=1e-12, atol=0.0)
+    whole = skyfit.envmap(atm, (30.0, 90.0), size=8, model=model, tables=model.tables(atm), spectral=True)
+    assert np.abs(whole.spectral[:4] / env.spectral[:4] - 1.0).max() > 0.05  # 2017's 4 texels over the whole axis

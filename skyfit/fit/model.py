@@ -84,6 +84,11 @@ class SkyModel:
     spacing: str = "uniform"
     """Single scattering: view-ray nodes ``uniform`` in distance or ``geometric``
     (:func:`skyfit.scattering.single.geometric_nodes`; :func:`skyfit.render`'s default)."""
+    sun_window: bool = False
+    """Bruneton tables for one sun (:meth:`sun_tables`: the scattering table's mu_s axis over the sun's zenith angle
+    +- 5 deg in texels 2 deg apart instead of 2017's axis, whose texels give a high sun about one and put a hazy sky's
+    orders >= 2 at the zenith 2x high; docs/multiple_scattering.md, "One sun's mu_s window"); used by
+    :func:`skyfit.render` and :func:`skyfit.envmap`, which render one sun. ``table_sizes``' mu_s count is then unused."""
     lut_method: str = "cached"
     """How Hillaire's LUT is evaluated (:data:`skyfit.scattering.hillaire.LUT_METHODS`; equal to 1e-12):
     ``rows`` is the slower original, kept for before/after timings (scripts/kider_fit_speed.py)."""
@@ -137,6 +142,20 @@ class SkyModel:
         return precompute(atm, orders=self.orders, sizes=sizes, quadrature=self.quadrature(),
                           progress=False)  # once per loss evaluation: no bar
 
+    def sun_tables(self, atm: Atmosphere, sun_zenith_deg: float, altitude_m: float = 0.0):
+        """:meth:`tables`, built for one sun where :attr:`sun_window` asks it of Bruneton tables and the observer is
+        inside the atmosphere (one in space sees the sun from where its rays enter, elsewhere on the sphere)."""
+        inside = altitude_m < float(atm.top_radius - atm.bottom_radius)
+        if not (self.sun_window and self.orders > 1 and self.multiple == "bruneton" and inside):
+            return self.tables(atm)
+        from ..scattering.bruneton_tables import TableSizes, sun_window
+        from ..scattering.multiple import precompute
+
+        sizes = TableSizes(*(self.table_sizes or self.REDUCED_TABLES))
+        mu_s_range, texels = sun_window(sun_zenith_deg, sun_zenith_deg, sizes.scattering_mu_s)
+        return precompute(atm, orders=self.orders, sizes=dataclasses.replace(sizes, scattering_mu_s=texels),
+                          mu_s_range=mu_s_range, quadrature=self.quadrature(), progress=False)
+
     def renderer(self, atm: Atmosphere, altitude_m: float = 0.0, tables=None) -> Renderer:
         """A function ``(directions (N, 3), sun (3,) or (N, 3)) -> radiance (N, W)`` for ``atm``.
 
@@ -182,6 +201,8 @@ class SkyModel:
                     out["ray_rule"] = self.ray_rule
                 if self.density_directions != (16, 32):
                     out["density_directions"] = list(self.density_directions)
+                if self.sun_window:
+                    out["sun_window"] = True
         return out
 
 

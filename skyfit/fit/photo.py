@@ -55,7 +55,8 @@ from ..camera.icc import icc_sensitivities
 from ..camera.masks import SUN_MASK_MAX_DEG, grow_outlier_mask, obstacle_mask, sun_mask
 from ..camera.sun import parse_location, parse_time, sun_position
 from ..io.photo import LinearPhoto, block_view, exif_location, exif_stamps, read_photo, reduced_photo
-from ..scattering.bruneton_tables import MU_S_MIN_DEFAULT
+from ..scattering.bruneton_tables import SUN_MARGIN_DEG, SUN_SPACING_DEG
+from ..scattering.bruneton_tables import sun_window as sun_mu_s_window
 from .data import Observation
 from .model import FitProblem, aerosol_log_depth, applied_lens, lens_directions, tilt_directions
 from .optimise import curved, resolved_method
@@ -1517,10 +1518,10 @@ def interpolation_matrix(wavelengths: torch.Tensor, index: np.ndarray) -> torch.
     return m
 
 
-MS_SUN_MARGIN_DEG = 5.0
+MS_SUN_MARGIN_DEG = SUN_MARGIN_DEG
 """Bruneton's tables of a fit whose suns are fixed (no ``sun_zenith_offset`` free) span the suns' zenith angles and this
 much beyond on either side (:func:`sun_window`), instead of 2017's whole axis from mu_s_min to 1. [deg]"""
-MS_SUN_SPACING_DEG = 2.0
+MS_SUN_SPACING_DEG = SUN_SPACING_DEG
 """The largest spacing in sun zenith angle between the mu_s texels of :func:`sun_window`'s tables (six texels for one
 sun). 2017's axis spends its texels near the horizon: with the photo fit's 16 (before session 16) a sun 20-35 deg from
 the zenith lay between two texels 0.975 and 0.999 of the axis apart, and a hazy sky's orders >= 2 (AOD 0.3, g 0.82)
@@ -1531,22 +1532,18 @@ docs/multiple/sun_window.json, docs/multiple_scattering.md "One sun's mu_s windo
 
 
 def sun_window(problem: FitProblem, x: torch.Tensor, texels: int) -> tuple[tuple[float, float] | None, int]:
-    """The sun zenith cosines (lo, hi) and texel count of Bruneton tables for ``problem``'s suns at ``x``: their zenith
-    angles widened by :data:`MS_SUN_MARGIN_DEG`, at most :data:`MS_SUN_SPACING_DEG` apart; ``(None, texels)`` (2017's
-    axis of ``texels``) where a fitted sun zenith offset moves the sun during a fit."""
+    """The sun zenith cosines (lo, hi) and texel count of Bruneton tables for ``problem``'s suns at ``x``
+    (:func:`skyfit.scattering.bruneton_tables.sun_window` with :data:`MS_SUN_MARGIN_DEG` and
+    :data:`MS_SUN_SPACING_DEG`); ``(None, texels)`` (2017's axis of ``texels``) where a fitted sun zenith offset moves
+    the sun during a fit."""
     if "sun_zenith_offset" in problem.param.free or not problem.observations:
         return None, texels
     with torch.no_grad():
         ph = problem.param.to_physical(x)
         zen = [torch.rad2deg(torch.arccos(problem.sun_vectors(ph, i).reshape(-1, 3)[:, 2].clamp(-1.0, 1.0)))
                for i in range(len(problem.observations))]
-    lo_deg = max(0.0, min(float(z.min()) for z in zen) - MS_SUN_MARGIN_DEG)
-    hi_deg = min(180.0, max(float(z.max()) for z in zen) + MS_SUN_MARGIN_DEG)
-    lo, hi = max(math.cos(math.radians(hi_deg)), MU_S_MIN_DEFAULT), math.cos(math.radians(lo_deg))
-    if not hi > lo:
-        return None, texels
-    n = int(math.ceil((hi_deg - lo_deg) / MS_SUN_SPACING_DEG - 1e-9)) + 1
-    return (lo, hi), max(n, 2)
+    return sun_mu_s_window(min(float(z.min()) for z in zen), max(float(z.max()) for z in zen), texels,
+                           MS_SUN_MARGIN_DEG, MS_SUN_SPACING_DEG)
 
 
 def freeze_tables(problem: FitProblem, x: torch.Tensor, bruneton: "SkyModel | None" = None,

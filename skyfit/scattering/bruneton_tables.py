@@ -193,6 +193,28 @@ def mu_s_window(lo: float, hi: float, bottom: float, top: float, mu_s_min: float
     return a, b
 
 
+SUN_MARGIN_DEG = 5.0
+"""Tables for one sun (:func:`sun_window`) span its zenith angle and this much beyond on either side. [deg]"""
+SUN_SPACING_DEG = 2.0
+"""The largest spacing in sun zenith angle between the mu_s texels of :func:`sun_window`'s tables: six texels for one
+sun, within 0.2 % of a window of 1 deg spacing for a hazy sky's orders >= 2 at sun zeniths 23-80 deg where 2017's
+axis of 16 texels was 2.3x off at the zenith (docs/multiple_scattering.md, "One sun's mu_s window"). [deg]"""
+
+
+def sun_window(zenith_min_deg: float, zenith_max_deg: float, texels: int, margin_deg: float = SUN_MARGIN_DEG,
+               spacing_deg: float = SUN_SPACING_DEG, mu_s_min: float = MU_S_MIN_DEFAULT) -> tuple[tuple[float, float] | None, int]:
+    """``(mu_s_range, texels)`` of Bruneton tables for suns between these zenith angles: the cosines of the angles widened
+    by ``margin_deg`` (clipped to [mu_s_min, 1]), in texels at most ``spacing_deg`` apart
+    (:func:`skyfit.scattering.multiple.precompute`'s ``mu_s_range``); ``(None, texels)`` (2017's axis) where the
+    window would be empty."""
+    lo_deg = max(0.0, float(zenith_min_deg) - margin_deg)
+    hi_deg = min(180.0, float(zenith_max_deg) + margin_deg)
+    lo, hi = max(math.cos(math.radians(hi_deg)), mu_s_min), math.cos(math.radians(lo_deg))
+    if not hi > lo:
+        return None, texels
+    return (lo, hi), max(int(math.ceil((hi_deg - lo_deg) / spacing_deg - 1e-9)) + 1, 2)
+
+
 def mu_s_index(mu_s: Tensor, bottom: float, top: float, mu_s_min: float, n: int,
                window: tuple[float, float] = FULL_MU_S) -> Tensor:
     """Continuous texel index on a table's mu_s axis of ``n`` texels: :func:`mu_s_unit`'s coordinate, the first and

@@ -109,7 +109,7 @@ from ..fit.model import SkyModel
 from ..fit.parameters import Parameterisation
 from ..fit.problem import FitSettings, make_model
 from ..render.colour import spectral_to_xyz, xyz_to_linear_srgb
-from ..scattering.bruneton_tables import MU_S_MIN_DEFAULT, TableSizes
+from ..scattering.bruneton_tables import TableSizes, sun_window
 from ..scattering.multiple import precompute
 
 __all__ = [
@@ -414,8 +414,7 @@ def _render_grid(values: dict, sun_zenith_deg: float, s: SynthSettings, sun_dist
                     _TABLE_CACHE[tkey] = model.tables(atm)
                 else:
                     margin, texels = window
-                    rng = (max(math.cos(math.radians(min(sun_zenith_deg + margin, 180.0))), MU_S_MIN_DEFAULT),
-                           math.cos(math.radians(max(sun_zenith_deg - margin, 0.0))))
+                    rng, _ = sun_window(sun_zenith_deg, sun_zenith_deg, texels, margin_deg=margin)
                     _TABLE_CACHE[tkey] = precompute(atm, orders=s.orders, progress=False, mu_s_range=rng,
                                                     sizes=dataclasses.replace(TableSizes(*s.table_sizes), scattering_mu_s=texels),
                                                     quadrature=model.quadrature())
