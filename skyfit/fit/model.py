@@ -88,7 +88,7 @@ class SkyModel:
     """Bruneton tables for one sun (:meth:`sun_tables`: the scattering table's mu_s axis over the sun's zenith angle
     +- 5 deg in texels 2 deg apart instead of 2017's axis, whose texels give a high sun about one and put a hazy sky's
     orders >= 2 at the zenith 2x high; docs/multiple_scattering.md, "One sun's mu_s window"); used by
-    :func:`skyfit.render` and :func:`skyfit.envmap`, which render one sun. ``table_sizes``' mu_s count is then unused."""
+    :func:`skyfit.render` and :func:`skyfit.envmap` (their default Bruneton renderer), which render one sun. ``table_sizes``' mu_s count is then unused."""
     lut_method: str = "cached"
     """How Hillaire's LUT is evaluated (:data:`skyfit.scattering.hillaire.LUT_METHODS`; equal to 1e-12):
     ``rows`` is the slower original, kept for before/after timings (scripts/kider_fit_speed.py)."""
