@@ -108,9 +108,12 @@ def render_model(accuracy: str | None = None, orders: int = 1, multiple: str = "
         return SkyModel(parse_integrator(RENDER_DEFAULTS["integrator"]), view_samples=RENDER_DEFAULTS["view_samples"],
                         rule=RENDER_DEFAULTS["rule"], spacing=RENDER_DEFAULTS["spacing"])
     if accuracy is None and orders > 1:
-        if multiple == "bruneton":  # the reference: Bruneton 2017's table sizes, the mu_s axis for the one sun
+        if multiple == "bruneton":
+            # the reference: Bruneton 2017's table sizes with what converges a hazy sky's orders >= 2 (Gauss-Legendre
+            # view rays, the density directions' zenith bands split, the mu_s axis for the one sun; docs/envmap.md)
             return SkyModel(make_model(FitSettings()).integrator, orders=orders, multiple="bruneton",
-                            table_sizes=dataclasses.astuple(TableSizes()), sun_window=True)
+                            table_sizes=dataclasses.astuple(TableSizes()), sun_window=True, ray_rule="gauss",
+                            density_directions=(16, 32, 2))
         return make_model(FitSettings(integrator="gauss:samples=16", view_samples=32, orders=orders,
                                       multiple="hillaire", lut_size=[32, 32], lut_directions=64, lut_samples=20))
     tol = parse_accuracy(accuracy or ACCURATE)
