@@ -39,7 +39,8 @@ def main() -> None:
 
     model = dataclasses.replace(model, table_sizes=dataclasses.astuple(TableSizes.parse(args.table_sizes)))
     out = Path(args.out)
-    tables = model.tables(atm)  # once for every map
+    # once for every map, for their one sun (the default renderer's tables: SkyModel.sun_window)
+    tables = model.sun_tables(atm, math.degrees(math.acos(float(sun[2]))))
     env = skyfit.envmap(atm, sun, size=args.size, sun_disk=True, model=model, tables=tables)
     sky = skyfit.envmap(atm, sun, size=args.size, sun_disk=False, model=model, tables=tables)
     # one exposure for both pictures: the sky's 90th percentile
