@@ -8,7 +8,9 @@ float64. Views (elevation, azimuth from the sun): (10, 0), (30, 0), (45, 0), (60
 (10, 180). Printed: each setting's orders >= 2 (sky_radiance with all orders minus order 1, at 570 nm) over the
 reference's. The reference: scattering mu 128, 200 Gauss-Legendre view-ray nodes, 32 x 64 density directions, the
 photo fit's other sizes (minutes of CPU). The photo fit's tables: (64, 32, 16, 8, 16, 128, 16, 8) since session 14
-(mu 64 before).
+(mu 64 before). Every row and the reference keep 2017's mu_s axis of 16 texels, which is not converged for a high sun
+(2.3x at the zenith with the sun at 23 and 50 deg): scripts/ms_sun_window.py measures that axis, and the photo fit
+builds its tables for the photo's sun since session 16 (docs/multiple_scattering.md, "One sun's mu_s window").
 """
 from __future__ import annotations
 
