@@ -174,8 +174,8 @@ def render(atmosphere: Atmosphere, view: FisheyeCamera | Tensor, sun=None, *, ti
     """
     atm = atmosphere
     s = sun_vector(sun, time=time, location=location, dtype=atm.dtype, device=atm.device)
+    zen = math.degrees(math.acos(max(-1.0, min(1.0, float(s[2])))))
     if model is None:
-        zen = math.degrees(math.acos(max(-1.0, min(1.0, float(s[2])))))
         model = render_model(accuracy, orders, multiple, zen, altitude, "float64" if atm.dtype == torch.float64 else "float32")
     if isinstance(view, FisheyeCamera):
         vec, valid = view.pixel_vectors(atm.dtype, atm.device)
@@ -185,7 +185,6 @@ def render(atmosphere: Atmosphere, view: FisheyeCamera | Tensor, sun=None, *, ti
             raise ValueError(f"view must be a FisheyeCamera or unit vectors of shape (N, 3), got {tuple(vec.shape)}")
         valid = torch.isfinite(vec).all(-1)
     radiance = torch.zeros(*valid.shape, atm.wavelengths.shape[0], dtype=atm.dtype, device=atm.device)
-    zen = math.degrees(math.acos(max(-1.0, min(1.0, float(s[2])))))
     tables = model.sun_tables(atm, zen, altitude) if model.sun_window else None
     renderer = model.renderer(atm, altitude, tables=tables) if not sun_disk else _disk_renderer(model, atm, altitude, tables)
     radiance = radiance.index_put((valid,), renderer(vec[valid], s))
@@ -225,14 +224,14 @@ def envmap(source: "FitResult | Atmosphere", sun=None, *, time: str | None = Non
 
     atm = source.atmosphere() if isinstance(source, FitResult) else source
     s = sun_vector(sun, time=time, location=location, dtype=atm.dtype, device=atm.device)
+    zen = math.degrees(math.acos(max(-1.0, min(1.0, float(s[2])))))
     if model is None:
-        zen = math.degrees(math.acos(max(-1.0, min(1.0, float(s[2])))))
         model = render_model(accuracy, orders, multiple, zen, altitude, "float64" if atm.dtype == torch.float64 else "float32")
         if table_sizes is not None and model.orders > 1 and model.multiple == "bruneton":
             sizes = table_sizes if isinstance(table_sizes, TableSizes) else TableSizes.parse(table_sizes)
             model = dataclasses.replace(model, table_sizes=dataclasses.astuple(sizes))
     if tables is None and model.sun_window:
-        tables = model.sun_tables(atm, math.degrees(math.acos(max(-1.0, min(1.0, float(s[2]))))), altitude)
+        tables = model.sun_tables(atm, zen, altitude)
     fn = model.renderer(atm, altitude, tables=tables)
     meta = {"renderer": {**model.integrator.settings(), **model.settings()}, "observer_altitude_m": altitude,
             "atmosphere": atm.summary()}

@@ -140,9 +140,7 @@ def bruneton2017_textures(tables: PrecomputedAtmosphere, atm_rgb: Atmosphere | N
         (R MU, NU MU_S, 3), ``irradiance`` (n_r, n_mu_s, 3), ``transmittance`` (n_r, n_mu, 3);
         constants for the GLSL header and lut.json (SI units).
     """
-    if tables.mu_s_range is not None:
-        raise ValueError("tables built for one sun (precompute's mu_s_range) cannot be exported: 2017's textures span "
-                         "every sun elevation; precompute without mu_s_range")
+    tables.check_every_sun("2017's texture set")
     atm = tables.atm
     if atm.mie_phase not in ("cornette_shanks", "henyey_greenstein"):
         raise ValueError(f"Bruneton 2017's shader evaluates a one-lobe Mie phase (Cornette-Shanks or Henyey-Greenstein, "

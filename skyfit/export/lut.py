@@ -216,9 +216,7 @@ def export_luts(tables: PrecomputedAtmosphere, atm: Atmosphere | None, out_dir: 
     Returns:
         ``out_dir``.
     """
-    if tables.mu_s_range is not None:
-        raise ValueError("tables built for one sun (precompute's mu_s_range) cannot be exported: an engine's LUT spans "
-                         "every sun elevation; precompute without mu_s_range")
+    tables.check_every_sun("an engine's LUT")
     if format not in FORMATS:
         raise LutError(f"unknown LUT format {format!r}; valid: {', '.join(FORMATS)}")
     atm = tables.atm if atm is None else atm

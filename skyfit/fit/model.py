@@ -142,9 +142,13 @@ class SkyModel:
         return precompute(atm, orders=self.orders, sizes=sizes, quadrature=self.quadrature(),
                           progress=False)  # once per loss evaluation: no bar
 
-    def sun_tables(self, atm: Atmosphere, sun_zenith_deg: float, altitude_m: float = 0.0):
+    def sun_tables(self, atm: Atmosphere, sun_zenith_deg: float, altitude_m: float = 0.0, *,
+                   margin_deg: float | None = None, texels: int | None = None):
         """:meth:`tables`, built for one sun where :attr:`sun_window` asks it of Bruneton tables and the observer is
-        inside the atmosphere (one in space sees the sun from where its rays enter, elsewhere on the sphere)."""
+        inside the atmosphere (one in space sees the sun from where its rays enter, elsewhere on the sphere).
+
+        ``margin_deg``, ``texels``: the window's margin and its texel count instead of
+        :func:`~skyfit.scattering.bruneton_tables.sun_window`'s (its margin, texels at most its spacing apart)."""
         inside = altitude_m < float(atm.top_radius - atm.bottom_radius)
         if not (self.sun_window and self.orders > 1 and self.multiple == "bruneton" and inside):
             return self.tables(atm)
@@ -152,8 +156,9 @@ class SkyModel:
         from ..scattering.multiple import precompute
 
         sizes = TableSizes(*(self.table_sizes or self.REDUCED_TABLES))
-        mu_s_range, texels = sun_window(sun_zenith_deg, sun_zenith_deg, sizes.scattering_mu_s)
-        return precompute(atm, orders=self.orders, sizes=dataclasses.replace(sizes, scattering_mu_s=texels),
+        kw = {} if margin_deg is None else {"margin_deg": margin_deg}
+        mu_s_range, n = sun_window(sun_zenith_deg, sun_zenith_deg, sizes.scattering_mu_s, **kw)
+        return precompute(atm, orders=self.orders, sizes=dataclasses.replace(sizes, scattering_mu_s=texels or n),
                           mu_s_range=mu_s_range, quadrature=self.quadrature(), progress=False)
 
     def renderer(self, atm: Atmosphere, altitude_m: float = 0.0, tables=None) -> Renderer:

@@ -223,6 +223,13 @@ class PrecomputedAtmosphere:
         indirect = interpolate([self.irradiance], irradiance_index(r, mu_s, atm.bottom_radius, atm.top_radius, self.sizes))[0]
         return direct, indirect
 
+    def check_every_sun(self, what: str) -> None:
+        """ValueError unless the tables span every sun (not built for one sun, :func:`precompute`'s ``mu_s_range``):
+        ``what`` (an exporter's output) spans every sun elevation."""
+        if self.mu_s_range is not None:
+            raise ValueError(f"tables built for one sun (precompute's mu_s_range) cannot be exported: {what} spans "
+                             "every sun elevation; precompute without mu_s_range")
+
     def _ctx(self, atm: Atmosphere | None = None) -> "_Ctx":
         return _Ctx(self.transmittance_columns, self.atm if atm is None else atm, self.sizes, self.mu_s_min, self.mu_s_window)
 

@@ -109,8 +109,6 @@ from ..fit.model import SkyModel
 from ..fit.parameters import Parameterisation
 from ..fit.problem import FitSettings, make_model
 from ..render.colour import spectral_to_xyz, xyz_to_linear_srgb
-from ..scattering.bruneton_tables import TableSizes, sun_window
-from ..scattering.multiple import precompute
 
 __all__ = [
     "CAMERA_SENSITIVITIES",
@@ -403,21 +401,15 @@ def _render_grid(values: dict, sun_zenith_deg: float, s: SynthSettings, sun_dist
     atm = make_atmosphere(values, s.wavelengths, config, sun_distance_au)
     integ = make_model(FitSettings()).integrator
     if s.orders > 1:
-        model = SkyModel(integ, orders=s.orders, multiple="bruneton", table_sizes=tuple(s.table_sizes), ray_rule=s.ray_rule,
-                         density_directions=tuple(s.density_directions))
         window = None if s.sun_window is None else (float(s.sun_window[0]), int(s.sun_window[1]))
+        model = SkyModel(integ, orders=s.orders, multiple="bruneton", table_sizes=tuple(s.table_sizes), ray_rule=s.ray_rule,
+                         density_directions=tuple(s.density_directions), sun_window=window is not None)
         tkey = _cache_key(akey, s.orders, list(s.table_sizes), s.ray_rule, list(s.density_directions),
                           *(() if window is None else (window, float(sun_zenith_deg))))  # tables of one sun
         if tkey not in _TABLE_CACHE:
             with torch.no_grad():
-                if window is None:
-                    _TABLE_CACHE[tkey] = model.tables(atm)
-                else:
-                    margin, texels = window
-                    rng, _ = sun_window(sun_zenith_deg, sun_zenith_deg, texels, margin_deg=margin)
-                    _TABLE_CACHE[tkey] = precompute(atm, orders=s.orders, progress=False, mu_s_range=rng,
-                                                    sizes=dataclasses.replace(TableSizes(*s.table_sizes), scattering_mu_s=texels),
-                                                    quadrature=model.quadrature())
+                _TABLE_CACHE[tkey] = (model.tables(atm) if window is None else
+                                      model.sun_tables(atm, sun_zenith_deg, margin_deg=window[0], texels=window[1]))
             while len(_TABLE_CACHE) > 2:
                 _TABLE_CACHE.popitem(last=False)
         tables = _TABLE_CACHE[tkey]
