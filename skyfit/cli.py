@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import io
 import json
 import math
@@ -20,7 +21,7 @@ import numpy as np
 import torch
 
 from . import __version__
-from .api import envmap, resolve_device
+from .api import envmap, render_model, resolve_device
 from .batch import batch as run_batch
 from .batch import summary_lines
 from .atmosphere import ConfigError, load_atmosphere, read_config
@@ -106,8 +107,10 @@ def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projecti
         extra["spacing"] = _spacing(args)
     else:
         extra["multiple"] = getattr(args, "multiple", "bruneton")
-        if extra["multiple"] == "bruneton":
-            extra["table_sizes"] = _table_sizes(getattr(args, "table_sizes", None))
+        if extra["multiple"] == "bruneton" and getattr(args, "accuracy", None):  # the trade study's setting as measured
+            extra["table_sizes"] = _table_sizes(args.table_sizes)
+        elif extra["multiple"] == "bruneton":
+            extra["tables"] = _sun_tables(args, atm, sun_zenith)
         elif getattr(args, "hillaire_lut", None):  # N_H,N_MU_S,DIRECTIONS,SAMPLES (set by --accuracy)
             nh, nm, nd, ns = (int(v) for v in args.hillaire_lut.split(","))
             extra["tables"] = hillaire_lut(atm, size=(nh, nm), directions=nd, samples=ns)
@@ -115,6 +118,16 @@ def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projecti
         atm, cam, sun_zenith, sun_azimuth, integrator, altitude=args.altitude, view_samples=args.view_samples,
         rule=args.rule, orders=args.orders, sun_disk=args.sun_disk, **extra,
     )
+
+
+def _sun_tables(args, atm, sun_zenith: float):
+    """Bruneton tables for ``render --orders N``: :func:`skyfit.render`'s renderer (one sun's mu_s window, Gauss view
+    rays, split density bands; docs/multiple_scattering.md, "One sun's mu_s window") at ``--table-sizes``, if given."""
+    model = render_model(None, args.orders, "bruneton", sun_zenith, args.altitude)
+    sizes = _table_sizes(getattr(args, "table_sizes", None))
+    if sizes is not None:
+        model = dataclasses.replace(model, table_sizes=dataclasses.astuple(sizes))
+    return model.sun_tables(atm, sun_zenith, args.altitude)
 
 
 def _spacing(args) -> str:
@@ -1189,7 +1202,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--orders", type=int, default=1, help="scattering orders (1 = single scattering; >= 2: Bruneton's precomputed tables; default %(default)s)")
     r.add_argument("--multiple", choices=("bruneton", "hillaire"), default="bruneton",
                    help="with --orders >= 2: Bruneton's full orders, or Hillaire 2020's cheaper approximation (default %(default)s)")
-    r.add_argument("--table-sizes", help="R,MU,MUS,NU scattering-table sizes for --orders >= 2 (default 32,128,32,8)")
+    r.add_argument("--table-sizes", help="R,MU,MUS,NU scattering-table sizes for --orders >= 2 (default 32,128,32,8; "
+                   "MUS is unused: the tables' mu_s axis spans the sun's zenith angle +- 5 deg in texels 2 deg apart, "
+                   "docs/multiple_scattering.md)")
     r.add_argument("--wavelengths", default=DEFAULT_WAVELENGTHS, help="START:STOP:STEP or comma list [nm] (default %(default)s)")
     r.add_argument("--spectral", action="store_true", help="also write one channel L<nm> per wavelength")
     r.add_argument("--preview", action="store_true", help="also write an 8-bit sRGB PNG of the fisheye beside --out "

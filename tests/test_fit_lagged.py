@@ -33,13 +33,18 @@ def sky(tmp_path_factory):
     return d
 
 
-def _problem(sky, free=()):
+def _config(free=()) -> dict:
     from skyfit.atmosphere import load_yaml
     from skyfit.atmosphere.config import SHIPPED_CONFIGS
 
     cfg = load_yaml(str(SHIPPED_CONFIGS / "earth_hazy.yaml"))
     cfg["fit"] = {"orders": 4, "multiple": "bruneton_lagged", "table_sizes": SIZES, "integrator": "chapman",
                   "view_samples": 8, "rule": "gauss", "free": list(free) or ["exposure"]}
+    return cfg
+
+
+def _problem(sky, free=()):
+    cfg = _config(free)
     prep = prepare([sky / "sky.exr"], cfg, fit_settings(cfg["fit"]))
     return prep.fit_problem()
 
@@ -225,11 +230,18 @@ def test_fast_multiple_holds_the_factor(sky):
 
 @pytest.fixture(scope="module")
 def sky4(tmp_path_factory):
-    """The sky of ``sky`` with 4 Bruneton orders (a truth a lagged fit can settle on)."""
+    """The sky of ``sky`` with 4 Bruneton orders from the lagged fit's own tables at the truth (a truth it can settle
+    on; ``skyfit render --orders 4``'s own tables, with Gauss view rays and split density bands, are richer)."""
+    import skyfit.cli as cli
+    from skyfit.fit.problem import make_model
+
     d = tmp_path_factory.mktemp("lagged4")
-    assert main(["render", "earth_hazy", "--out", str(d / "sky.exr"), "--size", "14", "--sun-zenith", "50",
-                 "--wavelengths", "450,550,650", "--integrator", "chapman", "--view-samples", "8", "--rule", "gauss",
-                 "--spectral", "--dtype", "float64", "--orders", "4", "--table-sizes", "8,32,8,4"]) == 0
+    model = dataclasses.replace(make_model(fit_settings(_config()["fit"])).factor_model(), sun_window=True)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(cli, "_sun_tables", lambda args, atm, zen: model.sun_tables(atm, zen, args.altitude))
+        assert main(["render", "earth_hazy", "--out", str(d / "sky.exr"), "--size", "14", "--sun-zenith", "50",
+                     "--wavelengths", "450,550,650", "--integrator", "chapman", "--view-samples", "8", "--rule", "gauss",
+                     "--spectral", "--dtype", "float64", "--orders", "4"]) == 0
     return d
 
 
@@ -467,7 +479,7 @@ def test_a_refit_starts_from_the_factor_a_settled_fit_ended_on(sky4, monkeypatch
         return seen[0]
 
     now, before = first_model(last), first_model(last[:4])
-    torch.testing.assert_close(now, ended, rtol=1e-9, atol=0.0)
+    torch.testing.assert_close(now, ended, rtol=1e-8, atol=0.0)  # 3e-9 (rounding of the handed-on slope's step)
     off = float((before / ended - 1.0).abs().max())
     print(f"AOD {built_aod:.5f} -> {aod:.5f}; taken as built at the result the start's model is off by {off:.2e}")
     assert off > 1e-6
@@ -559,7 +571,7 @@ def test_the_budgets_refits_of_a_photo_fit_keep_its_factor_following_the_aerosol
 def test_refreshes_from_a_known_curvature_end_where_lbfgs_does(sky4, monkeypatch):
     """A photo's lagged fit by L-BFGS: its refreshes after the first fitted from the Hessian taken at the second fit's
     start (LAGGED_CURVED, optimise.curved) end on the values every refresh by L-BFGS ends on, to 0.005 of a noise
-    sigma and no higher (to 1e-7 of the loss), in fewer objective evaluations; a carried-on fit (tables handed on) starts so too."""
+    sigma and no higher (to 1e-5 of the loss), in fewer objective evaluations; a carried-on fit (tables handed on) starts so too."""
     from skyfit.fit import photo as fp
     from skyfit.fit.laplace import laplace_summary
 
@@ -584,8 +596,10 @@ def test_refreshes_from_a_known_curvature_end_where_lbfgs_does(sky4, monkeypatch
     s_x = torch.tensor(list(laplace_summary(p0, r0.x)["sigma_unconstrained"].values()), dtype=torch.float64)
     for a, b in ((r0, r1), (rc0, rc1)):  # within curved's own tolerance (CURVED_TOL), and no higher
         print(f"L-BFGS {a.loss:.10g}, curved {b.loss:.10g}, apart {float(((b.x - a.x).abs() / s_x).max()):.2g} sigma")
-        # and no higher than L-BFGS's by more than 1e-7 of it (2e-8 with one sun's tables, the values 4e-4 sigma apart)
-        assert float(((b.x - a.x).abs() / s_x).max()) < 5e-3 and b.loss <= a.loss * (1 + 1e-7)
+        # and no higher than L-BFGS's by more than 1e-5 of it: the two end on tables built at points apart, so their
+        # losses are of slightly different objectives (5e-6 on a truth from the fit's own tables at 2017's sizes,
+        # 2e-8 on one from tables of 8 mu_s texels on 2017's axis, the values 3e-3 and 4e-4 sigma apart)
+        assert float(((b.x - a.x).abs() / s_x).max()) < 5e-3 and b.loss <= a.loss * (1 + 1e-5)
     assert p1.n_evaluations + c1.n_evaluations < p0.n_evaluations + c0.n_evaluations
 
 
