@@ -176,3 +176,19 @@ def test_prior_strain_is_the_sum_of_squared_z_and_its_chi2_point():
     assert more - strain == pytest.approx((math.log(0.35) ** 2 + math.log(0.82) ** 2) / fp.SATURATION_PRIOR_LOG_SIGMA**2,
                                           rel=1e-12)
     assert fp.PROBE_AOD[0] < fp.PROBE_AOD[1]
+
+
+def test_a_probe_heads_back_only_at_its_trust_bound_toward_the_first_fit():
+    """PROBE_HEADS_BACK's test (fit.photo.heads_back): a probe whose first refresh went a full trust step (a factor 2 in
+    AOD) toward the first fit's AOD is on its way back; one that stopped short of the bound (a basin near its start),
+    moved away from the first fit, or reached past the first fit's AOD is not."""
+    two = math.exp(fp.MS_AOD_TRUST)
+    assert two == pytest.approx(2.0)
+    # the seven probes of session 16's suites: from 0.05 to the bound 0.1 toward 0.24-0.46, from 0.4 to 0.2 toward 0.06-0.11
+    for first, start, after in ((0.2814, 0.05, 0.1001), (0.4620, 0.05, 0.1001), (0.2442, 0.05, 0.1000),
+                                (0.1095, 0.4, 0.1998), (0.0797, 0.4, 0.1999), (0.0601, 0.4, 0.1998), (0.0989, 0.4, 0.1998)):
+        assert fp.heads_back(start, first, after)
+    assert not fp.heads_back(0.4, 0.065, 0.48)  # toward a hazy basin, away from the first fit (synthetic case 12's kind)
+    assert not fp.heads_back(0.4, 0.065, 0.30)  # stopped inside the trust region: a basin near the probe's start
+    assert not fp.heads_back(0.05, 0.08, 0.1)  # past the first fit's AOD: not a step back toward it
+    assert not fp.heads_back(0.05, 0.3, 0.1, trust=math.log(3.0))  # short of a wider trust region's bound
