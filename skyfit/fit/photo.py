@@ -823,9 +823,9 @@ PROBE_HEADS_BACK = True
 """A probe (:data:`PRIOR_STRAIN_LEVEL`) whose first refresh on the race's blocks ends above the first fit's loss there
 and as far toward the first fit's AOD as the trust region lets it (:func:`heads_back`) is dropped there: it is on its
 way back to the first fit's basin, not in a second one. On the two synthetic suites of session 16 all seven probes did
-so (0.05 -> 0.10 toward 0.24-0.46, 0.4 -> 0.2 toward 0.06-0.11, each loss 2-20x the first fit's) and all seven ended
-in the first fit's basin after their three refreshes (AOD within 0.7 % of the first fit's where one was kept, a 1.6 %
-lower loss), at 15-30 s a photo (session 17, docs/photos.md "A probe that heads back"). A second basin within one
+so (0.05 -> 0.10 toward 0.24-0.46, 0.4 -> 0.2 toward 0.06-0.11, each loss 5-22x the first fit's there) and all seven
+ended in the first fit's basin after their three refreshes (AOD within 5 % of the first fit's; where one was kept, a
+1.6 % lower loss at an AOD 0.5 % from the first fit's), at 15-30 s a photo (session 17, docs/photos.md "A probe that heads back"). A second basin within one
 trust step of the probe's start (a factor :data:`MS_AOD_TRUST` in AOD) still shows, as one beyond it on the far side.
 False: every probe runs its :data:`PROBE_REFRESHES`."""
 PROBE_AOD = (0.05, 0.4)
