@@ -110,7 +110,7 @@ def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projecti
         if extra["multiple"] == "bruneton" and getattr(args, "accuracy", None):  # the trade study's setting as measured
             extra["table_sizes"] = _table_sizes(args.table_sizes)
         elif extra["multiple"] == "bruneton":
-            extra["tables"] = _sun_tables(args, atm, sun_zenith)
+            extra["tables"], args.tables_meta = _sun_tables(args, atm, sun_zenith)
         elif getattr(args, "hillaire_lut", None):  # N_H,N_MU_S,DIRECTIONS,SAMPLES (set by --accuracy)
             nh, nm, nd, ns = (int(v) for v in args.hillaire_lut.split(","))
             extra["tables"] = hillaire_lut(atm, size=(nh, nm), directions=nd, samples=ns)
@@ -122,12 +122,17 @@ def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projecti
 
 def _sun_tables(args, atm, sun_zenith: float):
     """Bruneton tables for ``render --orders N``: :func:`skyfit.render`'s renderer (one sun's mu_s window, Gauss view
-    rays, split density bands; docs/multiple_scattering.md, "One sun's mu_s window") at ``--table-sizes``, if given."""
+    rays, split density bands; docs/multiple_scattering.md, "One sun's mu_s window") at ``--table-sizes``, if given;
+    and their settings for the EXR header."""
     model = render_model(None, args.orders, "bruneton", sun_zenith, args.altitude)
     sizes = _table_sizes(getattr(args, "table_sizes", None))
     if sizes is not None:
         model = dataclasses.replace(model, table_sizes=dataclasses.astuple(sizes))
-    return model.sun_tables(atm, sun_zenith, args.altitude)
+    tables = model.sun_tables(atm, sun_zenith, args.altitude)
+    rng = getattr(tables, "mu_s_range", None)
+    meta = {k: v for k, v in model.settings().items() if k in ("ray_rule", "density_directions")}
+    return tables, {"table_sizes": list(dataclasses.astuple(tables.sizes)), **meta,
+                    "mu_s_range": None if rng is None else [float(v) for v in rng]}
 
 
 def _spacing(args) -> str:
@@ -172,6 +177,8 @@ def _exr_payload(img, atm, integrator, args, sun_zenith, sun_azimuth, spectral: 
         "orders": args.orders,
         "atmosphere": atm.summary(),
     }
+    if getattr(args, "tables_meta", None):  # Bruneton's tables of --orders >= 2 (their mu_s axis for this sun)
+        meta["multiple_tables"] = args.tables_meta
     return chans, meta
 
 

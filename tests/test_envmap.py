@@ -345,7 +345,10 @@ def test_skyfit_render_orders_is_the_python_render_with_its_sun_tables(tmp_path,
                       "--orders", 4, "--table-sizes", ",".join(map(str, small)), "--wavelengths", "450,550,650",
                       "--spectral", "--dtype", "float64"], capsys)
     assert rc == 0, err
-    chans, _ = read_exr(out)
+    chans, meta = read_exr(out)
+    tables = meta["multiple_tables"]  # the header says which tables: the sun's 30 deg +- 5 in 6 texels, Gauss rays
+    np.testing.assert_allclose(tables["mu_s_range"], [math.cos(math.radians(35.0)), math.cos(math.radians(25.0))], rtol=1e-12)
+    assert tables["table_sizes"][4:] == [4, 16, 6, 8] and tables["ray_rule"] == "gauss"
     atm = load_atmosphere("earth_hazy", wl)
     model = render_model(None, 4, "bruneton")
     model = dataclasses.replace(model, table_sizes=model.table_sizes[:4] + small)
