@@ -238,7 +238,7 @@ def sky4(tmp_path_factory):
     d = tmp_path_factory.mktemp("lagged4")
     model = dataclasses.replace(make_model(fit_settings(_config()["fit"])).factor_model(), sun_window=True)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(cli, "_sun_tables", lambda args, atm, zen: model.sun_tables(atm, zen, args.altitude))
+        mp.setattr(cli, "_sun_tables", lambda args, atm, zen: (model.sun_tables(atm, zen, args.altitude), {}))
         assert main(["render", "earth_hazy", "--out", str(d / "sky.exr"), "--size", "14", "--sun-zenith", "50",
                      "--wavelengths", "450,550,650", "--integrator", "chapman", "--view-samples", "8", "--rule", "gauss",
                      "--spectral", "--dtype", "float64", "--orders", "4"]) == 0
