@@ -238,6 +238,8 @@ def test_the_runner_up_projection_is_fitted_only_where_the_short_fits_are_close(
     names = ["equidistant", "equisolid", "stereographic"]
     assert ranked_projections(names, [3.578, 3.269, 9.0]) == ("equisolid", "equidistant")
     assert ranked_projections(names, [1.475, 2.0, 0.05973]) == ("stereographic", None)
+    # session 16's held-out case 15: the true equidistant lens 1.58x the equisolid one in the short fits; raced, it won
+    assert ranked_projections(names[:2], [1.657, 1.049]) == ("equisolid", "equidistant")
     edge = 0.1 * RUNNER_UP_RATIO
     assert ranked_projections(names[:2], [0.1, edge * 0.999]) == ("equidistant", "equisolid")
     assert ranked_projections(names[:2], [edge, 0.1]) == ("equisolid", None)
