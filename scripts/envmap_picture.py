@@ -18,6 +18,7 @@ import torch
 import skyfit
 from skyfit.camera import FisheyeCamera
 from skyfit.export.envmap import write_preview
+from skyfit.geometry import zenith_angle_deg
 from skyfit.render.colour import spectral_to_xyz, xyz_to_linear_srgb, xyz_to_srgb_matrix
 
 WHEN, WHERE = "2013-05-27T16:00:00-04:00", (42.443449, -76.481962, 250.0)
@@ -40,7 +41,7 @@ def main() -> None:
     model = dataclasses.replace(model, table_sizes=dataclasses.astuple(TableSizes.parse(args.table_sizes)))
     out = Path(args.out)
     # once for every map, for their one sun (the default renderer's tables: SkyModel.sun_window)
-    tables = model.sun_tables(atm, math.degrees(math.acos(float(sun[2]))))
+    tables = model.sun_tables(atm, zenith_angle_deg(sun))
     env = skyfit.envmap(atm, sun, size=args.size, sun_disk=True, model=model, tables=tables)
     sky = skyfit.envmap(atm, sun, size=args.size, sun_disk=False, model=model, tables=tables)
     # one exposure for both pictures: the sky's 90th percentile

@@ -8,7 +8,6 @@ what it is given.
 from __future__ import annotations
 
 import dataclasses
-import math
 import time as _time
 from pathlib import Path
 from typing import Sequence
@@ -21,6 +20,7 @@ from .atmosphere import DEFAULT_WAVELENGTHS, Atmosphere, atmosphere_from_config,
 from .atmosphere import load_atmosphere as _load_atmosphere
 from .camera import FisheyeCamera, parse_location, parse_time, sun_position
 from .camera.fisheye import zenith_azimuth_to_enu
+from .geometry import zenith_angle_deg
 from .export import export_luts as _write_luts
 from .fit.data import Observation
 from .fit.model import SkyModel
@@ -174,7 +174,7 @@ def render(atmosphere: Atmosphere, view: FisheyeCamera | Tensor, sun=None, *, ti
     """
     atm = atmosphere
     s = sun_vector(sun, time=time, location=location, dtype=atm.dtype, device=atm.device)
-    zen = math.degrees(math.acos(max(-1.0, min(1.0, float(s[2])))))
+    zen = zenith_angle_deg(s)
     if model is None:
         model = render_model(accuracy, orders, multiple, zen, altitude, "float64" if atm.dtype == torch.float64 else "float32")
     if isinstance(view, FisheyeCamera):
@@ -224,7 +224,7 @@ def envmap(source: "FitResult | Atmosphere", sun=None, *, time: str | None = Non
 
     atm = source.atmosphere() if isinstance(source, FitResult) else source
     s = sun_vector(sun, time=time, location=location, dtype=atm.dtype, device=atm.device)
-    zen = math.degrees(math.acos(max(-1.0, min(1.0, float(s[2])))))
+    zen = zenith_angle_deg(s)
     if model is None:
         model = render_model(accuracy, orders, multiple, zen, altitude, "float64" if atm.dtype == torch.float64 else "float32")
         if table_sizes is not None and model.orders > 1 and model.multiple == "bruneton":

@@ -101,8 +101,9 @@ def _camera_from_args(args, size, projection):
 
 
 def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projection):
+    """The fisheye of ``render``, and the header of the Bruneton tables it built (None where it built none here)."""
     cam = _camera_from_args(args, size, projection)
-    extra = {}
+    extra, header = {}, None
     if args.orders == 1:
         extra["spacing"] = _spacing(args)
     else:
@@ -110,14 +111,14 @@ def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projecti
         if extra["multiple"] == "bruneton" and getattr(args, "accuracy", None):  # the trade study's setting as measured
             extra["table_sizes"] = _table_sizes(args.table_sizes)
         elif extra["multiple"] == "bruneton":
-            extra["tables"], args.tables_meta = _sun_tables(args, atm, sun_zenith)
+            extra["tables"], header = _sun_tables(args, atm, sun_zenith)
         elif getattr(args, "hillaire_lut", None):  # N_H,N_MU_S,DIRECTIONS,SAMPLES (set by --accuracy)
             nh, nm, nd, ns = (int(v) for v in args.hillaire_lut.split(","))
             extra["tables"] = hillaire_lut(atm, size=(nh, nm), directions=nd, samples=ns)
     return render_fisheye(
         atm, cam, sun_zenith, sun_azimuth, integrator, altitude=args.altitude, view_samples=args.view_samples,
         rule=args.rule, orders=args.orders, sun_disk=args.sun_disk, **extra,
-    )
+    ), header
 
 
 def _sun_tables(args, atm, sun_zenith: float):
@@ -129,9 +130,9 @@ def _sun_tables(args, atm, sun_zenith: float):
     if sizes is not None:
         model = dataclasses.replace(model, table_sizes=dataclasses.astuple(sizes))
     tables = model.sun_tables(atm, sun_zenith, args.altitude)
-    rng = getattr(tables, "mu_s_range", None)
-    meta = {k: v for k, v in model.settings().items() if k in ("ray_rule", "density_directions")}
-    return tables, {"table_sizes": list(dataclasses.astuple(tables.sizes)), **meta,
+    rng = tables.mu_s_range
+    return tables, {"table_sizes": list(dataclasses.astuple(tables.sizes)), "ray_rule": model.ray_rule,
+                    "density_directions": list(model.density_directions),
                     "mu_s_range": None if rng is None else [float(v) for v in rng]}
 
 
@@ -177,8 +178,6 @@ def _exr_payload(img, atm, integrator, args, sun_zenith, sun_azimuth, spectral: 
         "orders": args.orders,
         "atmosphere": atm.summary(),
     }
-    if getattr(args, "tables_meta", None):  # Bruneton's tables of --orders >= 2 (their mu_s axis for this sun)
-        meta["multiple_tables"] = args.tables_meta
     return chans, meta
 
 
@@ -244,10 +243,12 @@ def cmd_render(args) -> int:
     atm = load_atmosphere(args.config, lam, dtype=DTYPES[args.dtype], device=device, sun_distance_au=sun_info.get("distance_au"))
     t0 = time.perf_counter()
     with torch.no_grad():
-        img = _render_image(args, atm, integrator, sun_zenith, sun_azimuth, args.size, args.projection)
+        img, tables_header = _render_image(args, atm, integrator, sun_zenith, sun_azimuth, args.size, args.projection)
     elapsed = time.perf_counter() - t0
     chans, meta = _exr_payload(img, atm, integrator, args, sun_zenith, sun_azimuth, args.spectral)
     meta["sun"].update(sun_info)
+    if tables_header:  # Bruneton's tables of --orders >= 2 (their mu_s axis for this sun)
+        meta["multiple_tables"] = tables_header
     bad = sorted(k for k, v in chans.items() if not np.isfinite(v).all())
     if bad:  # never write an image of NaN/Inf (a parameter the checks above missed, or a renderer bug)
         raise UserError(f"render of {args.config} produced non-finite values in channel(s) {bad}; nothing written")

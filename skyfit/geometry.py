@@ -140,6 +140,12 @@ def zenith_azimuth_to_enu(zenith: Tensor, azimuth: Tensor) -> Tensor:
     return torch.stack([s * torch.sin(azimuth), s * torch.cos(azimuth), torch.cos(zenith)], -1)
 
 
+def zenith_angle_deg(v) -> float:
+    """The zenith angle [deg] of one unit vector in ENU, shape (3,) (a tensor, array or sequence; its up component
+    clamped to [-1, 1] against rounding)."""
+    return math.degrees(math.acos(max(-1.0, min(1.0, float(v[2])))))
+
+
 def enu_to_zenith_azimuth(v: Tensor) -> tuple[Tensor, Tensor]:
     """Zenith angle [rad] and azimuth [rad, clockwise from North, in [0, 2 pi)] of vectors (..., 3) in ENU.
 

@@ -43,7 +43,7 @@ import torch
 from torch import Tensor
 
 from ..atmosphere import Atmosphere
-from ..geometry import distance_to_top
+from ..geometry import distance_to_top, zenith_angle_deg
 from ..render.colour import spectral_to_xyz, tonemap_srgb8, xyz_to_linear_srgb
 from ..atmosphere.profiles import profile_densities
 from ..scattering.bruneton_tables import extinction_matrix3
@@ -343,7 +343,7 @@ def render_envmap(atm: Atmosphere, sun: Tensor, radiance_fn: Callable[[Tensor], 
         if sun_disk:
             rad = rad + sun_disc_splat(atm, sun, layout, size, omega, altitude)
         rgb = xyz_to_linear_srgb(spectral_to_xyz(rad, atm.wavelengths))
-    zen = math.degrees(math.acos(max(-1.0, min(1.0, float(sun[2])))))
+    zen = zenith_angle_deg(sun)
     az = math.degrees(math.atan2(float(sun[0]), float(sun[1]))) % 360.0
     np_ = lambda t: t.detach().cpu().numpy()  # noqa: E731
     rgb_np = np_(rgb)

@@ -54,6 +54,7 @@ from ..camera.fisheye import CLASSICAL_PROJECTIONS, FisheyeCamera, theta_to_rho,
 from ..camera.icc import icc_sensitivities
 from ..camera.masks import SUN_MASK_MAX_DEG, grow_outlier_mask, obstacle_mask, sun_mask
 from ..camera.sun import parse_location, parse_time, sun_position
+from ..geometry import zenith_angle_deg
 from ..io.photo import LinearPhoto, block_view, exif_location, exif_stamps, read_photo, reduced_photo
 from ..scattering.bruneton_tables import SUN_MARGIN_DEG, SUN_SPACING_DEG
 from ..scattering.bruneton_tables import sun_window as sun_mu_s_window
@@ -1040,7 +1041,7 @@ def fitted_camera(cam: FisheyeCamera, azimuth_offset: float, tilt_north: float, 
 
     R = add_azimuth(-azimuth_offset) @ ry(tilt_east) @ rx(-tilt_north) @ cam.rotation(torch.float64).numpy()
     axis = R[:, 2]
-    zen = math.degrees(math.acos(max(-1.0, min(1.0, axis[2]))))
+    zen = zenith_angle_deg(axis)
     horiz = math.hypot(axis[0], axis[1])
     te, tn = (zen * axis[0] / horiz, zen * axis[1] / horiz) if horiz > 1e-15 else (0.0, 0.0)
     meta = cam.to_metadata()
