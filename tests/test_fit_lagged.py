@@ -691,3 +691,39 @@ def test_an_unknown_ray_rule_in_a_config_is_one_line_and_exit_2(tmp_path, capsys
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and f"fit.{key}" in err[0] and shown in err[0], err
     assert not (tmp_path / "r.json").exists()
+
+
+def test_a_curved_run_stopped_at_the_losss_precision_stands_where_its_gradient_is_small(sky4, monkeypatch):
+    """optimise.curved: a BFGS run that scipy stops for precision loss (status 2) is None by default (the caller falls
+    back to L-BFGS) and stands with ``precision_tol`` where its whitened gradient is under it, at the point BFGS reached;
+    a gradient over ``precision_tol`` is still None. (The stop is forced on a converged run: which fits stop so is up to
+    float64 rounding.)"""
+    import scipy.optimize
+
+    from skyfit.fit import optimise as opt
+    from skyfit.fit import photo as fp
+
+    free = ["mie_aod_550", "mie_angstrom_alpha", "exposure"]
+    problem = fp.PhotoProblem.of(_problem(sky4, free), {})
+    problem.param.set_value("mie_aod_550", 0.12)
+    options = fit_settings({"starts": 1, "adam_steps": 0, "optimiser": "lbfgs"}).options(False)
+    fp.freeze_tables(problem, problem.param.initial_vector(torch.float64, torch.device("cpu")),
+                     problem.model.factor_model())
+    x0 = opt.fit(problem, options).x
+    cov = fp._curvature(problem, x0)
+    x1 = x0 + 0.5 * torch.linalg.cholesky(cov) @ torch.ones_like(x0)  # half a sigma off along every whitened axis
+    real = scipy.optimize.minimize
+
+    def precision_loss(*a, **k):
+        out = real(*a, **k)
+        out.success, out.status = False, 2
+        return out
+
+    monkeypatch.setattr(scipy.optimize, "minimize", precision_loss)
+    assert opt.curved(problem, x1, cov) is None
+    assert opt.curved(problem, x1, cov, precision_tol=1e-12) is None
+    res = opt.curved(problem, x1, cov, precision_tol=opt.CURVED_PRECISION_TOL)
+    assert res is not None and "precision loss" in res.convergence["reason"]
+    monkeypatch.setattr(scipy.optimize, "minimize", real)
+    ref = opt.curved(problem, x1, cov)
+    assert torch.equal(res.x, ref.x) and res.loss == ref.loss

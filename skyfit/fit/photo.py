@@ -60,7 +60,7 @@ from ..scattering.bruneton_tables import SUN_MARGIN_DEG, SUN_SPACING_DEG
 from ..scattering.bruneton_tables import sun_window as sun_mu_s_window
 from .data import Observation
 from .model import FitProblem, aerosol_log_depth, applied_lens, lens_directions, tilt_directions
-from .optimise import curved, resolved_method
+from .optimise import CURVED_PRECISION_TOL, curved, resolved_method
 from .optimise import fit as optimise
 from .parameters import CAMERA_RESPONSE, NUISANCE
 from .problem import fit_settings, make_model, prepare
@@ -2035,7 +2035,7 @@ def lagged_fit(problem: FitProblem, options, refreshes: int = MS_REFRESHES, tol:
             if curvature is None:
                 curvature = _curvature(problem, x)
             if curvature is not False:
-                res = curved(problem, x, curvature)
+                res = curved(problem, x, curvature, precision_tol=CURVED_PRECISION_TOL)
                 curved_fits += res is not None
         if res is None:
             res = optimise(problem, options)
