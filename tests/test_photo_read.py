@@ -688,3 +688,51 @@ def test_exposure_ratios_through_a_three_curve_table_without_exposures(tmp_path)
     ph = read_photo(tmp_path / "s", response=f"file:{table}")
     rel = np.array([f["relative_exposure"] for f in ph.meta["frames"]])
     np.testing.assert_allclose(rel[1:] / rel[:-1], 4.0, rtol=0.01)
+
+
+# ----------------------------------------------------------------------------------------------
+# EXIF Orientation: read as displayed
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("fmt", ["png", "tif"])
+def test_every_exif_orientation_reads_as_pillow_displays_it(tmp_path, fmt):
+    """A file with EXIF Orientation o reads as Pillow's ImageOps.exif_transpose shows it (the reference), equal to
+    the same displayed image stored without a tag, for all eight values; the turn is noted, 1 is not."""
+    from PIL import ImageOps
+
+    rng = np.random.default_rng(3)
+    stored = (rng.random((30, 50, 3)) * 200 + 20).astype(np.uint8)  # not square: a turn swaps the axes
+    for o in range(1, 9):
+        ex = Image.Exif()
+        ex[0x0112] = o
+        p = tmp_path / f"o{o}.{fmt}"
+        Image.fromarray(stored).save(p, exif=ex)
+        with Image.open(p) as im:
+            shown = np.asarray(ImageOps.exif_transpose(im))
+        q = tmp_path / f"shown{o}.{fmt}"
+        Image.fromarray(shown).save(q)
+        ph, ref = read_photo(p), read_photo(q)
+        assert ph.rgb.shape == shown.shape and (ph.rgb.shape[:2] == (50, 30)) == (o >= 5)
+        np.testing.assert_array_equal(ph.rgb, ref.rgb)
+        np.testing.assert_array_equal(ph.valid, ref.valid)
+        assert ph.meta["frames"][0]["orientation"] == o
+        assert any(f"EXIF Orientation {o}" in n for n in ph.meta["notes"]) == (o != 1)
+
+
+def test_a_bracket_of_frames_stored_turned_merges_as_displayed(tmp_path):
+    """A bracket whose frames a camera stored in different orientations (one turned 90 deg with Orientation 6, as a
+    phone held up writes it) is one scene as displayed: it merges to the bracket of the same frames stored upright,
+    censoring included; without reading the tag the frames would differ in size."""
+    L = scene()
+    up = write_bracket(tmp_path / "up", L, EXPS, fmt="png", exif=True)
+    (tmp_path / "mixed").mkdir()
+    for k, (codes, e) in enumerate(zip(up, EXPS)):
+        ex = exif_for(e / 1000)
+        if k % 2:  # stored as the sensor saw it: the displayed image turned back 90 deg counter-clockwise
+            ex[0x0112] = 6
+            codes = np.rot90(codes, 1)
+        Image.fromarray(np.ascontiguousarray(codes)).save(tmp_path / "mixed" / f"f{k}.png", exif=ex)
+    a, b = read_photo(tmp_path / "up"), read_photo(tmp_path / "mixed")
+    np.testing.assert_allclose(b.rgb, a.rgb, rtol=1e-12)
+    np.testing.assert_array_equal(b.censored_high, a.censored_high)
+    assert [f["orientation"] for f in b.meta["frames"]] == [1, 6, 1, 6][: len(EXPS)]

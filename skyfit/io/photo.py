@@ -442,9 +442,10 @@ def exif_location(path: str | Path) -> tuple[float, float, float | None] | None:
 
 
 def _read_exif(path: str) -> dict:
-    """EXIF facts of a file (None where absent): exposure_s, f_number, iso, datetime_original, camera_make/model."""
+    """EXIF facts of a file (None where absent): exposure_s, f_number, iso, datetime_original, camera_make/model;
+    orientation (1 where absent)."""
     out = {"exposure_s": None, "f_number": None, "iso": None, "datetime_original": None,
-           "camera_make": None, "camera_model": None, "color_space": None, "interop_index": None}
+           "camera_make": None, "camera_model": None, "color_space": None, "interop_index": None, "orientation": 1}
     tags = exif_tags(path)
 
     def first(*names):
@@ -467,6 +468,7 @@ def _read_exif(path: str) -> dict:
     if cs is not None and getattr(cs, "values", None):
         out["color_space"] = int(cs.values[0])
     out["interop_index"] = _exif_text(tags, "Interoperability InteroperabilityIndex")
+    out["orientation"] = exif_orientation(tags)
     return out
 
 
@@ -683,15 +685,68 @@ def _raw_frame(path: str, exif: dict) -> _Frame:
     return f
 
 
+EXIF_ORIENTATION_NAMES = {2: "mirrored left-right", 3: "turned 180 deg", 4: "mirrored top-bottom",
+                           5: "mirrored about the main diagonal", 6: "turned 90 deg clockwise",
+                           7: "mirrored about the anti-diagonal", 8: "turned 90 deg counter-clockwise"}
+"""EXIF Orientation values (TIFF 6.0 tag 274; CIPA DC-008 EXIF 2.32, 4.6.4 A) other than 1, by what displaying the
+stored image takes."""
+
+
+def exif_orientation(exif: dict) -> int:
+    """The EXIF Orientation (1-8) of a file's tags (:func:`exif_tags`); 1 where absent or out of range."""
+    tag = exif.get("Image Orientation")
+    try:
+        v = int(tag.values[0] if isinstance(tag.values, (list, tuple)) else tag.values)
+    except (AttributeError, TypeError, ValueError, IndexError):
+        return 1
+    return v if 1 <= v <= 8 else 1
+
+
+def oriented(a: np.ndarray, orientation: int) -> np.ndarray:
+    """``a`` (H, W, ...) as displayed under EXIF ``orientation``: what Pillow's ``ImageOps.exif_transpose`` does to an
+    image, on an array. By hand because a frame is numpy arrays (codes, censoring masks, validity) and 16-bit PNGs
+    and TIFFs do not pass through Pillow; tests/test_photo_read.py checks all eight against Pillow."""
+    if orientation == 2:
+        a = a[:, ::-1]
+    elif orientation == 3:
+        a = a[::-1, ::-1]
+    elif orientation == 4:
+        a = a[::-1]
+    elif orientation == 5:
+        a = a.swapaxes(0, 1)
+    elif orientation == 6:
+        a = a.swapaxes(0, 1)[:, ::-1]
+    elif orientation == 7:
+        a = a.swapaxes(0, 1)[::-1, ::-1]
+    elif orientation == 8:
+        a = a.swapaxes(0, 1)[::-1]
+    return np.ascontiguousarray(a)
+
+
+def _displayed(frame: _Frame) -> _Frame:
+    """``frame`` turned as its EXIF Orientation says it is displayed, so that the fit, ``--mask``, RESULT.png and
+    every pixel position in RESULT.json read the photo as its owner sees it in a viewer (a phone held up writes
+    6 or 8). Not for HEIF: libheif applies the file's own transforms (irot/imir) in decoding, and its EXIF keeps
+    the original value."""
+    o = frame.exif.get("orientation", 1) if frame.kind != "heif" else 1
+    if o != 1:
+        for name in ("codes", "high", "low", "valid"):
+            setattr(frame, name, oriented(getattr(frame, name), o))
+        frame.info.setdefault("notes", []).append(
+            f"{os.path.basename(frame.path)}: read as displayed, {EXIF_ORIENTATION_NAMES[o]} (EXIF Orientation {o}); "
+            "pixel positions, --mask and RESULT.png are of the image so turned")
+    return frame
+
+
 def _read_frame(path: str, kind: str) -> _Frame:
     exif = _read_exif(path)
     if kind == "raw":
-        return _raw_frame(path, exif)
+        return _displayed(_raw_frame(path, exif))
     arr, bits = _read_heif(path) if kind == "heif" else (_read_ldr_array(path, kind), None)
     if kind == "tiff" and arr.dtype.kind == "f":
         raise PhotoError(f"photo {path}: a floating-point TIFF is not read as a photo frame; "
                          "save linear HDR data as EXR or Radiance .hdr")
-    frame = _ldr_frame(path, kind, arr, exif, bits)
+    frame = _displayed(_ldr_frame(path, kind, arr, exif, bits))
     frame.icc, frame.icc_problem = _embedded_icc(path, kind, frame.mono)
     if frame.icc is None and frame.icc_problem is None and not frame.mono:
         frame.icc_declared, frame.icc_problem = _exif_colour_space(path, exif)
@@ -1211,7 +1266,8 @@ def _read_linear_image(path: str, kind: str, exposures, linear: bool, response) 
 
 def _frame_list_meta(frames, rel_exp, sources) -> list[dict]:
     return [{"path": f.path, "exposure_s": f.exif.get("exposure_s"), "f_number": f.exif.get("f_number"),
-             "iso": f.exif.get("iso"), "relative_exposure": float(e), "exposure_source": s}
+             "iso": f.exif.get("iso"), "relative_exposure": float(e), "exposure_source": s,
+             "orientation": 1 if f.kind == "heif" else f.exif.get("orientation", 1)}
             for f, e, s in zip(frames, rel_exp, sources)]
 
 
