@@ -510,6 +510,14 @@ def test_bad_depth_and_channels(tmp_path):
     with pytest.raises(PhotoError, match=r"cut\.png: cannot read the 16-bit PNG \(.*End of file") as e:
         read_photo(tmp_path / "cut.png")
     one_line(e)
+    # CMYK (four channels that are not RGB + alpha): refused, not read with the ink channel as an alpha of nothing valid
+    rgb = Image.fromarray(np.full((8, 8, 3), 120, np.uint8))
+    rgb.convert("CMYK").save(tmp_path / "print.jpg")
+    tifffile.imwrite(tmp_path / "print.tif", np.asarray(rgb.convert("CMYK")), photometric="separated")
+    for name in ("print.jpg", "print.tif"):
+        with pytest.raises(PhotoError, match=name.replace(".", r"\.") + r": a CMYK image") as e:
+            read_photo(tmp_path / name)
+        one_line(e)
 
 
 def test_bad_hdr_values(tmp_path):

@@ -575,13 +575,21 @@ def _read_ldr_array(path: str, kind: str) -> np.ndarray:
         if kind == "tiff":
             import tifffile  # imageio's TIFF plugin returns every page stacked: read the first page only
 
-            arr = tifffile.imread(path, key=0)
+            with tifffile.TiffFile(path) as tf:
+                cmyk = int(tf.pages[0].photometric) == 5  # SEPARATED (TIFF 6.0, PhotometricInterpretation)
+                arr = tf.pages[0].asarray()
         else:
             import imageio.v3 as iio
+            from PIL import Image
 
+            with Image.open(path) as im:  # the header only: imageio's arrays do not say CMYK from RGBA
+                cmyk = im.mode == "CMYK"
             arr = iio.imread(path, index=0, plugin="pillow")  # not the legacy plugins imageio would also try
     except Exception as e:  # noqa: BLE001 - reader errors vary by plugin
         raise PhotoError(f"photo {path}: cannot read the image ({_one_line(e)})") from None
+    if cmyk:  # four channels that are not RGB + alpha: read as such, the ink channel became a mask of nothing valid
+        raise PhotoError(f"photo {path}: a CMYK image (print separations) is not a camera's RGB; "
+                         "give the camera's own file (JPEG/PNG/TIFF in RGB, RAW)")
     return np.asarray(arr)
 
 
