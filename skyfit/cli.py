@@ -43,7 +43,7 @@ from .quadrature import RULES
 from .render.auto import RENDER_DEFAULTS, choose, describe, parse_accuracy
 from .scattering.bruneton_tables import TableSizes
 from .scattering.hillaire import hillaire_lut
-from .scattering.multiple import precompute
+from .scattering.multiple import SunBelowTables, precompute
 from .scattering.single import SPACINGS
 from .tools.bench import machine_info, run_bench
 from .tools.integrator_calibration import CALIBRATE_QUICK, calibrate_integrators
@@ -115,10 +115,17 @@ def _render_image(args, atm, integrator, sun_zenith, sun_azimuth, size, projecti
         elif getattr(args, "hillaire_lut", None):  # N_H,N_MU_S,DIRECTIONS,SAMPLES (set by --accuracy)
             nh, nm, nd, ns = (int(v) for v in args.hillaire_lut.split(","))
             extra["tables"] = hillaire_lut(atm, size=(nh, nm), directions=nd, samples=ns)
-    return render_fisheye(
-        atm, cam, sun_zenith, sun_azimuth, integrator, altitude=args.altitude, view_samples=args.view_samples,
-        rule=args.rule, orders=args.orders, sun_disk=args.sun_disk, **extra,
-    ), header
+    try:
+        return render_fisheye(
+            atm, cam, sun_zenith, sun_azimuth, integrator, altitude=args.altitude, view_samples=args.view_samples,
+            rule=args.rule, orders=args.orders, sun_disk=args.sun_disk, **extra,
+        ), header
+    except SunBelowTables as e:  # the library's advice names Python arguments the CLI has not
+        lowest = math.degrees(math.acos(e.mu_s_min))
+        raise UserError(f"--sun-zenith {sun_zenith:g}: Bruneton's multiple-scattering tables (--orders {args.orders}) "
+                        f"hold suns down to {lowest:.1f} deg from the zenith at the observer (mu_s_min {e.mu_s_min:g}), "
+                        f"this one is at {math.degrees(math.acos(e.mu_s)):.1f} deg; render it with --orders 1 or "
+                        "--multiple hillaire") from None
 
 
 def _sun_tables(args, atm, sun_zenith: float):

@@ -359,3 +359,22 @@ def test_skyfit_render_orders_is_the_python_render_with_its_sun_tables(tmp_path,
                         model=dataclasses.replace(model, sun_window=False, ray_rule="trapezoid", density_directions=(16, 32)))
     v = sky.valid.numpy()
     assert np.abs(old.radiance.numpy()[v] / got[v] - 1.0).max() > 0.05
+
+
+def test_skyfit_render_orders_with_the_sun_below_the_tables_is_one_line_in_the_clis_terms(tmp_path, capsys):
+    """A sun lower than Bruneton's tables reach (mu_s_min -0.2: 101.5 deg) is one line, exit 2, no file, naming the
+    flags that render it (the library's message names Python arguments); the library still raises its ValueError;
+    --multiple hillaire renders it."""
+    from skyfit.scattering.multiple import SunBelowTables
+
+    assert issubclass(SunBelowTables, ValueError)
+    out = tmp_path / "sky.exr"
+    rc, _, err = run(["render", "earth", "--out", out, "--size", 8, "--sun-zenith", 120, "--orders", 2,
+                      "--table-sizes", "4,16,8,4", "--wavelengths", "550"], capsys)
+    assert rc == 2 and not out.exists()
+    line = err.strip()
+    assert "\n" not in line and "--sun-zenith 120" in line and "101.5 deg" in line and "--orders 1" in line, line
+    assert "below_mu_s_min" not in line
+    rc, _, err = run(["render", "earth", "--out", out, "--size", 8, "--sun-zenith", 120, "--orders", 2,
+                      "--multiple", "hillaire", "--wavelengths", "550"], capsys)
+    assert rc == 0 and out.exists(), err

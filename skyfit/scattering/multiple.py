@@ -86,6 +86,17 @@ from .single import sun_visible_fraction
 BELOW_MU_S_MIN = ("raise", "clamp", "zero")
 
 
+class SunBelowTables(ValueError):
+    """:func:`sky_radiance` asked for a sun lower than its tables reach (``below_mu_s_min="raise"``): ``mu_s`` the
+    lowest sun zenith cosine asked, ``mu_s_min`` the tables'. A ValueError, so callers that catch those still do; the
+    CLI says it in its own terms."""
+
+    def __init__(self, mu_s: float, mu_s_min: float):
+        self.mu_s, self.mu_s_min = mu_s, mu_s_min
+        super().__init__(f"sun zenith cosine {mu_s:.4f} at the observer is below the tables' mu_s_min = {mu_s_min}; "
+                         "precompute with a lower mu_s_min or pass below_mu_s_min='clamp' or 'zero'")
+
+
 @dataclasses.dataclass(frozen=True)
 class Quadrature:
     """Fixed sample counts of the precomputation integrals (Bruneton 2017 defaults).
@@ -1050,10 +1061,7 @@ def sky_radiance(
     r1 = torch.where(valid, r1, torch.full_like(r, Rt))
     below = valid & (mu_s1 < tables.mu_s_min)
     if below_mu_s_min == "raise" and bool(below.any()):
-        raise ValueError(
-            f"sun zenith cosine {float(mu_s1[below].min()):.4f} at the observer is below the tables' "
-            f"mu_s_min = {tables.mu_s_min}; precompute with a lower mu_s_min or pass below_mu_s_min='clamp' or 'zero'"
-        )
+        raise SunBelowTables(float(mu_s1[below].min()), float(tables.mu_s_min))
     if tables.mu_s_range is not None and below_mu_s_min == "raise":
         lo, hi = tables.mu_s_range
         out = valid & ((mu_s1 < lo - 1e-9) | (mu_s1 > hi + 1e-9))
