@@ -64,10 +64,10 @@ FIT = {"orders": 2, "multiple": "hillaire", "integrator": "chapman", "view_sampl
        "sun_mask_deg": 3.0, "min_elevation_deg": 2.0, "max_iter": 200}
 
 
-def draw_truth(rng: np.random.Generator, two_term: bool) -> dict:
+def draw_truth(rng: np.random.Generator, two_term: bool, beta: tuple[float, float] = (1e-5, 8e-5)) -> dict:
     t = {
         "rayleigh_scale": float(rng.uniform(0.9, 1.1)),
-        "mie_beta_550": float(math.exp(rng.uniform(math.log(1e-5), math.log(8e-5)))),
+        "mie_beta_550": float(math.exp(rng.uniform(math.log(beta[0]), math.log(beta[1])))),
         "mie_angstrom_alpha": float(rng.uniform(0.2, 1.8)),
         "mie_scale_height": float(rng.uniform(800.0, 2500.0)),
         "g1": float(rng.uniform(0.6, 0.85)),
@@ -122,8 +122,11 @@ def observe(t: dict, args, rng: np.random.Generator) -> tuple[Observation, dict]
                         torch.ones(n, dtype=torch.bool), chans, torch.tensor(lam))
     base = atmosphere_from_config(truth_config(t), lam)
     tables = tuple(int(v) for v in args.truth_tables.split(","))
+    # the truth's tables span its sun, or (--reference-axis whole, the studies before session 18) 2017's whole axis
+    window = (getattr(args, "truth_axis", None) or getattr(args, "reference_axis", "window")) == "window"
     model = ReferenceModel(make_integrator("gauss", samples=args.truth_light), orders=2, view_samples=args.truth_view,
-                           rule="gauss", reference_tables=tables, reference_orders=args.truth_orders)
+                           rule="gauss", reference_tables=tables, reference_orders=args.truth_orders, sun_window=window,
+                           sun_zenith_deg=(t["sun_zenith_deg"],) * 2 if window else None)
     prob = FitProblem(Parameterisation(base, []), model, [dummy], make_loss("squared"))
     t0 = time.process_time()
     with torch.no_grad():
@@ -166,7 +169,7 @@ def variants(spec: str) -> dict[str, dict]:
 def one_sky(k: int, args) -> dict:
     rng = np.random.default_rng([args.seed, k])
     two_term = k % 2 == 1
-    t = draw_truth(rng, two_term)
+    t = draw_truth(rng, two_term, tuple(float(v) for v in getattr(args, "beta_range", "1e-5,8e-5").split(",")))
     t["mie_g_forward_lobe"] = t["g1"]
     obs, info = observe(t, args, rng)
     cfg = fit_config()
@@ -177,14 +180,16 @@ def one_sky(k: int, args) -> dict:
     c_fit = time.process_time() - c0
     c0 = time.process_time()
     lap = laplace_summary(problem, res.x)
-    term = numerical_term(problem, res.x, lap, refits=args.refits, polish=getattr(args, "polish", 0),
+    reference = ReferenceModel.of(problem.model, sun_window=getattr(args, "reference_axis", "window") == "window")
+    term = numerical_term(problem, res.x, lap, reference=reference, refits=args.refits, polish=getattr(args, "polish", 0),
                           options=FitOptions(starts=1, adam_steps=0, max_iter=FIT["max_iter"]))
     sigmas = {"total": error_budget(problem, res.x, lap, term=term)}
     for name, kw in variants(args.compare).items():
         sigmas[name] = error_budget(problem, res.x, lap, term=term, **kw)
     expansion = None
     if args.expand:  # the default total plus the phase term (skyfit.fit.budget.phase_expansion)
-        expansion = phase_expansion(problem, res.x, term, options=FitOptions(starts=1, adam_steps=0, max_iter=FIT["max_iter"]))
+        expansion = phase_expansion(problem, res.x, term, reference=reference,
+                                    options=FitOptions(starts=1, adam_steps=0, max_iter=FIT["max_iter"]))
         sigmas["expand"] = error_budget(problem, res.x, lap, term=term, expansion=expansion)
     tot = sigmas["total"]
     # the numerically corrected estimate (value at x + dx, the shift not an error): error_budget's "corrected"
@@ -275,6 +280,11 @@ def main(argv=None) -> int:
     ap.add_argument("--truth-tables", default="16,64,16,8", help="R,MU,MU_S,NU of the truth's Bruneton tables")
     ap.add_argument("--truth-orders", type=int, default=8)
     ap.add_argument("--refits", type=int, default=1, help="the budget's lagged refits (fit.sigma_refits)")
+    ap.add_argument("--reference-axis", choices=("window", "whole"), default="window",
+                    help="the truth's and the budget reference's Bruneton tables: spanning the sky's sun (default, "
+                         "fit.sigma_reference_axis) or 2017's whole mu_s axis (every study before session 18)")
+    ap.add_argument("--truth-axis", choices=("window", "whole"), help="the truth's tables alone (default: --reference-axis)")
+    ap.add_argument("--beta-range", default="1e-5,8e-5", help="LO,HI of the truths' log-uniform Mie beta_550 [1/m]")
     ap.add_argument("--polish", type=int, default=0, help="the budget's reference polish after the refits "
                     "(fit.sigma_polish: Levenberg-Marquardt steps on the reference, skyfit.fit.budget.reference_polish)")
     ap.add_argument("--compare", default="", help="other discrepancy models beside the default total, MODEL[:G[:FORM]],... "

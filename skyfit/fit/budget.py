@@ -71,7 +71,7 @@ import torch
 from torch import Tensor
 
 from ..render.sky import render_vectors
-from ..scattering.bruneton_tables import TableSizes
+from ..scattering.bruneton_tables import TableSizes, sun_window
 from ..scattering.multiple import precompute, sky_radiance
 from ..scattering.single import ray_parameters
 from ..transmittance import make_integrator
@@ -110,6 +110,15 @@ REFERENCE_TABLES = (16, 64, 16, 8)
 """Bruneton scattering-table sizes (R, MU, MU_S, NU) of the reference's orders >= 2 (the trade study's)."""
 REFERENCE_ORDERS = 6
 """Scattering orders of the reference's Bruneton tables (the trade study's reference_orders)."""
+REFERENCE_SUN_WINDOW = True
+"""The reference's Bruneton tables span the fit's suns (their zenith angles +- the window's margin, texels at most
+:data:`~skyfit.scattering.bruneton_tables.SUN_SPACING_DEG` apart: :func:`~skyfit.scattering.bruneton_tables.sun_window`)
+instead of 2017's whole mu_s axis of ``REFERENCE_TABLES[2]`` texels, which gives a high sun about one texel: on
+``earth_hazy`` with the sun at 30 deg the whole axis put the total radiance 16 % high at the zenith and 28 % at 60 deg
+elevation opposite the sun, where the window's 6 texels are within 0.3 % of tables of twice the texels in every
+dimension, and build 4.5x faster (docs/uncertainty.md, "A reference for the fit's suns"). False (``fit.sigma_reference_axis:
+whole``): the whole axis, as every budget before session 18 was measured. Not where a ``sun_zenith_offset`` is fitted
+(the sun moves)."""
 
 
 @dataclasses.dataclass
@@ -128,20 +137,32 @@ class ReferenceModel(SkyModel):
 
     reference_tables: tuple[int, int, int, int] = REFERENCE_TABLES
     reference_orders: int = REFERENCE_ORDERS
+    sun_window: bool = REFERENCE_SUN_WINDOW
+    sun_zenith_deg: tuple[float, float] | None = None  # the suns the tables span (set by reference_problem)
 
     @classmethod
     def of(cls, model: SkyModel, light_samples: int = REFERENCE_LIGHT_SAMPLES, view_samples: int = REFERENCE_VIEW_SAMPLES,
-           tables: tuple[int, int, int, int] = REFERENCE_TABLES, orders: int = REFERENCE_ORDERS) -> "ReferenceModel":
+           tables: tuple[int, int, int, int] = REFERENCE_TABLES, orders: int = REFERENCE_ORDERS,
+           sun_window: bool = REFERENCE_SUN_WINDOW) -> "ReferenceModel":
         """The reference of a fit's model: same orders (1 or more) and ground, converged settings."""
         return cls(make_integrator("gauss", samples=light_samples), orders=model.orders, view_samples=view_samples,
-                   rule="gauss", ground=model.ground, reference_tables=tuple(tables), reference_orders=orders)
+                   rule="gauss", ground=model.ground, reference_tables=tuple(tables), reference_orders=orders,
+                   sun_window=sun_window)
+
+    def window(self) -> tuple[tuple[float, float] | None, int]:
+        """``(mu_s_range, texels)`` of the tables: :data:`REFERENCE_SUN_WINDOW`'s window around :attr:`sun_zenith_deg`,
+        or ``(None, REFERENCE_TABLES[2])`` (2017's whole axis) without one."""
+        if not self.sun_window or self.sun_zenith_deg is None:
+            return None, self.reference_tables[2]
+        return sun_window(*self.sun_zenith_deg, self.reference_tables[2])
 
     def tables(self, atm):
         if self.orders == 1:
             return None
         t = self.reference_tables
-        return precompute(atm, orders=self.reference_orders, progress=False,
-                          sizes=TableSizes(scattering_r=t[0], scattering_mu=t[1], scattering_mu_s=t[2], scattering_nu=t[3]))
+        mu_s_range, texels = self.window()
+        return precompute(atm, orders=self.reference_orders, progress=False, mu_s_range=mu_s_range,
+                          sizes=TableSizes(scattering_r=t[0], scattering_mu=t[1], scattering_mu_s=texels, scattering_nu=t[3]))
 
     def renderer(self, atm, altitude_m: float = 0.0, tables=None):
         if self.orders > 1 and tables is None:
@@ -163,14 +184,32 @@ class ReferenceModel(SkyModel):
         out = {"single": f"gauss optical depth {self.integrator.settings().get('samples')} nodes, gauss view integral "
                          f"{self.view_samples} nodes", "orders": self.orders, "ground": self.ground}
         if self.orders > 1:
-            out.update(multiple="bruneton", table_sizes=list(self.reference_tables), table_orders=self.reference_orders)
+            mu_s_range, texels = self.window()
+            out.update(multiple="bruneton", table_sizes=list(self.reference_tables[:2]) + [texels, self.reference_tables[3]],
+                       table_orders=self.reference_orders,
+                       mu_s_range=None if mu_s_range is None else [float(v) for v in mu_s_range])
         return out
 
 
+def sun_zenith_span(problem: FitProblem) -> tuple[float, float] | None:
+    """The smallest and largest sun zenith angle over ``problem``'s observations [deg]; None where a
+    ``sun_zenith_offset`` is fitted (the sun moves with it) or there are no observations."""
+    if "sun_zenith_offset" in problem.param.free or not problem.observations:
+        return None
+    with torch.no_grad():
+        ph = problem.param.to_physical(problem.param.initial_vector(problem.param.base.dtype, problem.param.base.device))
+        cos = torch.cat([problem.sun_vectors(ph, i).reshape(-1, 3)[:, 2] for i in range(len(problem.observations))])
+    zen = torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0)))
+    return float(zen.min()), float(zen.max())
+
+
 def reference_problem(problem: FitProblem, reference: SkyModel | None = None) -> FitProblem:
-    """``problem`` with its renderer replaced by ``reference`` (default :meth:`ReferenceModel.of` its model)."""
+    """``problem`` with its renderer replaced by ``reference`` (default :meth:`ReferenceModel.of` its model); a
+    :class:`ReferenceModel` of multiple scattering gets the fit's suns (:data:`REFERENCE_SUN_WINDOW`)."""
     ref = copy.copy(problem)
     ref.model = ReferenceModel.of(problem.model) if reference is None else reference
+    if isinstance(ref.model, ReferenceModel) and ref.model.orders > 1 and ref.model.sun_window and ref.model.sun_zenith_deg is None:
+        ref.model = dataclasses.replace(ref.model, sun_zenith_deg=sun_zenith_span(problem))
     ref.frozen_tables = None  # the reference builds its own tables
     if ref.model.orders > 1:  # a frozen factor (a photo's lagged Bruneton orders on live single scattering) stays
         ref.frozen_factor = None

@@ -93,6 +93,9 @@ class FitSettings:
     sigma_reference: list[int] | None = None
     """The numerical term's reference for orders >= 2: Bruneton table sizes and orders [R, MU, MU_S, NU, ORDERS]
     (None: the trade study's 16, 64, 16, 8 with 6 orders, skyfit.fit.budget.REFERENCE_TABLES)."""
+    sigma_reference_axis: str = "window"
+    """The reference's Bruneton tables: ``window`` (spanning the fit's suns, skyfit.fit.budget.REFERENCE_SUN_WINDOW) or
+    ``whole`` (2017's whole mu_s axis of MU_S texels, as budgets were measured before session 18)."""
     sigma_refits: int = 3
     """The numerical term: lagged refits with the reference (at most this many) where the Newton step is
     not linear (skyfit.fit.budget.NONLINEAR); 0: always the Newton step."""
@@ -246,6 +249,8 @@ def fit_settings(section: dict | None, overrides: dict | None = None, where: str
     if s.sigma_reference is not None and (not isinstance(s.sigma_reference, (list, tuple)) or len(s.sigma_reference) != 5
                                           or not all(isinstance(v, int) and v >= 2 for v in s.sigma_reference)):
         raise FitError(f"fit.sigma_reference must be [R, MU, MU_S, NU, ORDERS], integers >= 2, got {s.sigma_reference!r}")
+    if s.sigma_reference_axis not in ("window", "whole"):
+        raise FitError(f"fit.sigma_reference_axis must be window or whole, got {s.sigma_reference_axis!r}")
     if s.dtype not in DTYPES:
         raise FitError(f"dtype must be float32 or float64, got {s.dtype!r}")
     check_ray_rule(s.ray_rule, "fit.ray_rule")

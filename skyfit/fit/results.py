@@ -61,9 +61,11 @@ def result_dict(problem: FitProblem, res: OptimiseResult, *, command: str, setti
     if laplace:
         ref = (settings or {}).get("sigma_reference")
         st = settings or {}
+        window = (st.get("sigma_reference_axis") or "window") == "window"
+        sizes = {} if ref is None else {"tables": tuple(ref[:4]), "orders": int(ref[4])}
         result["laplace"] = uncertainty(problem, res.x, sigma=st.get("sigma") or "total",
-                                        reference=None if ref is None else ReferenceModel.of(
-                                            problem.model, tables=tuple(ref[:4]), orders=int(ref[4])),
+                                        reference=None if ref is None and window else ReferenceModel.of(
+                                            problem.model, sun_window=window, **sizes),
                                         refits=int(st.get("sigma_refits", 0) or 0),
                                         polish=int(st.get("sigma_polish", 0) or 0),
                                         options=FitOptions(starts=1, adam_steps=0, max_iter=int(st.get("max_iter", 100))),
