@@ -92,7 +92,8 @@ class FitSettings:
     or ``noise`` (the Hessian of the noise alone); docs/uncertainty.md, "Honest sigma under model error"."""
     sigma_reference: list[int] | None = None
     """The numerical term's reference for orders >= 2: Bruneton table sizes and orders [R, MU, MU_S, NU, ORDERS]
-    (None: the trade study's 16, 64, 16, 8 with 6 orders, skyfit.fit.budget.REFERENCE_TABLES)."""
+    (None: the trade study's 16, 64, 16, 8 with 6 orders, skyfit.fit.budget.REFERENCE_TABLES). MU_S is the whole axis's
+    texel count (``sigma_reference_axis: whole``); a window over the fit's suns takes texels at most 2 deg apart."""
     sigma_reference_axis: str = "window"
     """The reference's Bruneton tables: ``window`` (spanning the fit's suns, skyfit.fit.budget.REFERENCE_SUN_WINDOW) or
     ``whole`` (2017's whole mu_s axis of MU_S texels, as budgets were measured before session 18)."""
