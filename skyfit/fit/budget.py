@@ -8,7 +8,8 @@ the unconstrained vector x at the optimum x*, so that the reported sigma is the 
 1. **Numerical** (what skyfit can compute itself). The model of the fit's setting m_fit and
    of a converged setting m_ref (:class:`ReferenceModel`, the trade study's reference:
    Gauss-Legendre optical depth with 32 nodes, a 128-node Gauss view integral and, for
-   orders >= 2, Bruneton & Neyret 2008 tables with 6 orders) differ at x* by
+   orders >= 2, Bruneton & Neyret 2008 tables with 6 orders, their sun axis spanning the fit's suns:
+   :data:`REFERENCE_SUN_WINDOW`) differ at x* by
    delta = m_ref(x*) - m_fit(x*). Refitting with m_fit + delta moves x by one Newton step
 
        dx = -H^-1 g,   g = d/dx [ -log L(m_fit(x) + delta) ] at x*
