@@ -440,7 +440,7 @@ def cmd_fit(args) -> int:
     summary = {"out": str(args.out), "free": {n: res["parameters"][n] for n in res["free"]}, "loss": m["loss"],
                "rmse": m["rmse"], "rmse_units": m["rmse_units"], "delta_e": m["delta_e"], "n_samples": m["n_samples"],
                "converged": c["converged"], "reason": c["reason"], "seconds": round(res["seconds"], 3),
-               "plots": res.get("plots", [])}
+               "plots": res.get("plots", []), "notes": res.get("notes", [])}
     if "laplace" in res:
         summary["laplace_sigma"] = res["laplace"]["sigma"]
         if "corrected" in res["laplace"]:
@@ -466,6 +466,8 @@ def cmd_fit(args) -> int:
                 for n in summary["free"]))
         print(f"loss {m['loss']:.6g}  rmse {m['rmse']:.4g} {m['rmse_units']}  delta_e {m['delta_e']:.3g}  "
               f"({m['n_samples']} samples; {c['reason']} after {c['iterations']} L-BFGS iterations, {res['seconds']:.1f} s)")
+        for n in res.get("notes", []):
+            print(f"note: {n}")
         print(f"wrote {args.out}")
     return 0
 

@@ -368,3 +368,27 @@ def test_the_reference_of_multiple_scattering_builds_its_tables_for_the_fits_sun
     assert fit_settings({"sigma_reference_axis": "whole"}).sigma_reference_axis == "whole"
     with pytest.raises(FitError, match="fit.sigma_reference_axis must be window or whole, got 'half'"):
         fit_settings({"sigma_reference_axis": "half"})
+
+
+def test_a_hazy_sky_fitted_with_hillaires_multiple_scattering_gets_a_note():
+    """results.model_notes: a fit with Hillaire's orders >= 2 whose aerosol optical depth at 550 nm (interpolated in
+    log-log between the model's wavelengths) reaches HILLAIRE_HAZE_AOD gets one note naming the AOD and
+    --multiple bruneton_lagged; a clear sky, single scattering and Bruneton's orders get none."""
+    from skyfit.atmosphere import load_atmosphere
+    from skyfit.fit.results import HILLAIRE_HAZE_AOD, model_notes
+
+    obs, _ = tiny_observation(noise=0.01, seed=1, size=6)
+
+    def notes(config, orders=2, multiple="hillaire"):
+        atm = load_atmosphere(config, LAM, dtype=torch.float64)
+        p = FitProblem(Parameterisation(atm, ["exposure"]), SkyModel(make_integrator("chapman"), orders=orders,
+                                                                    multiple=multiple), [obs], make_loss("squared"))
+        depth = float(atm.mie_extinction.reshape(-1)[1] * atm.mie_column_height)  # LAM[1] is 550 nm
+        return model_notes(p, p.param.initial_vector()), depth
+
+    hazy, depth = notes("earth_hazy")
+    assert depth >= HILLAIRE_HAZE_AOD and len(hazy) == 1
+    assert f"{depth:.3g}" in hazy[0] and "--multiple bruneton_lagged" in hazy[0]
+    clear, depth = notes("earth")
+    assert depth < HILLAIRE_HAZE_AOD and clear == []
+    assert notes("earth_hazy", orders=1)[0] == [] and notes("earth_hazy", multiple="bruneton")[0] == []
