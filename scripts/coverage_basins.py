@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import coverage_model_error as C  # noqa: E402
 
 from skyfit.fit import FitOptions, fit  # noqa: E402
-from skyfit.fit.budget import display_names, reference_polish, reference_problem, refit_shift  # noqa: E402
+from skyfit.fit.budget import ReferenceModel, display_names, reference_polish, reference_problem, refit_shift  # noqa: E402
 from skyfit.fit.laplace import laplace_summary  # noqa: E402
 from skyfit.fit.problem import fit_settings, prepare  # noqa: E402
 
@@ -46,10 +46,13 @@ def main(argv=None) -> int:
                     "from the lagged iterate (about a minute of CPU each)")
     ap.add_argument("--lagged", action="store_true", help="also the budget's three lagged refits from the optimum and "
                     "from H_M = 1.2 km (a minute or two a sky)")
+    ap.add_argument("--reference-axis", choices=("window", "whole"), default="window",
+                    help="the truth's and the budget reference's Bruneton tables (coverage_model_error.py's flag; the "
+                         "studies of docs/uncertainty.md before session 18: whole)")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
     truth_args = argparse.Namespace(size=10, wavelengths=3, truth_light=64, truth_view=64, truth_tables="16,64,16,8",
-                                    truth_orders=8)  # coverage_model_error.py's defaults
+                                    truth_orders=8, reference_axis=a.reference_axis)  # coverage_model_error.py's defaults
     for k in (int(v) for v in a.skies.split(",")):
         rng = np.random.default_rng([a.seed, k])
         t = C.draw_truth(rng, k % 2 == 1)
@@ -68,7 +71,7 @@ def main(argv=None) -> int:
         r_t = fit(problem, dataclasses.replace(base, starts=1), x0=param.to_unconstrained(start, torch.float64))
         row["from_true_H_M"] = {"H_M": param.free_dict(r_t.x)["mie_scale_height"], "loss": r_t.loss}
         row["fit"] = {"values": param.free_dict(res.x), "loss": res.loss, "cpu_s": time.process_time() - c0}
-        ref = reference_problem(problem)
+        ref = reference_problem(problem, ReferenceModel.of(problem.model, sun_window=a.reference_axis == "window"))
 
         def ref_loss(x):
             with torch.no_grad():
