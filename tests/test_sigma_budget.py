@@ -365,6 +365,9 @@ def test_the_reference_of_multiple_scattering_builds_its_tables_for_the_fits_sun
     assert float(((finer - got) / finer).abs().max()) < 0.01
     p.param = Parameterisation(hazy, ["exposure", "sun_zenith_offset"])
     assert reference_problem(p, small).model.window() == (None, 8)
+    p.param = Parameterisation(hazy, ["exposure"])  # an observer in space sees its rays' entry points' suns
+    p.observations = [dataclasses.replace(obs, altitude_m=float(hazy.top_radius - hazy.bottom_radius) + 1000.0)]
+    assert reference_problem(p, small).model.window() == (None, 8)
     assert fit_settings({"sigma_reference_axis": "whole"}).sigma_reference_axis == "whole"
     with pytest.raises(FitError, match="fit.sigma_reference_axis must be window or whole, got 'half'"):
         fit_settings({"sigma_reference_axis": "half"})

@@ -119,7 +119,7 @@ instead of 2017's whole mu_s axis of ``REFERENCE_TABLES[2]`` texels, which gives
 elevation opposite the sun, where the window's 6 texels are within 0.3 % of tables of twice the texels in every
 dimension, and build 4.5x faster (docs/uncertainty.md, "A reference for the fit's suns"). False (``fit.sigma_reference_axis:
 whole``): the whole axis, as every budget before session 18 was measured. Not where a ``sun_zenith_offset`` is fitted
-(the sun moves)."""
+(the sun moves) or an observer is in space (:func:`sun_zenith_span`)."""
 
 
 @dataclasses.dataclass
@@ -194,8 +194,12 @@ class ReferenceModel(SkyModel):
 
 def sun_zenith_span(problem: FitProblem) -> tuple[float, float] | None:
     """The smallest and largest sun zenith angle over ``problem``'s observations [deg]; None where a
-    ``sun_zenith_offset`` is fitted (the sun moves with it) or there are no observations."""
-    if "sun_zenith_offset" in problem.param.free or not problem.observations:
+    ``sun_zenith_offset`` is fitted (the sun moves with it), an observer is at or above the top of the atmosphere (the
+    tables are looked up where its rays enter, under other sun angles: :meth:`SkyModel.sun_tables`'s rule), or there
+    are no observations."""
+    top = float(problem.param.base.top_radius - problem.param.base.bottom_radius)
+    if ("sun_zenith_offset" in problem.param.free or not problem.observations
+            or any(float(o.altitude_m) >= top for o in problem.observations)):
         return None
     with torch.no_grad():
         ph = problem.param.to_physical(problem.param.initial_vector(problem.param.base.dtype, problem.param.base.device))
