@@ -368,6 +368,9 @@ def test_the_reference_of_multiple_scattering_builds_its_tables_for_the_fits_sun
     p.param = Parameterisation(hazy, ["exposure"])  # an observer in space sees its rays' entry points' suns
     p.observations = [dataclasses.replace(obs, altitude_m=float(hazy.top_radius - hazy.bottom_radius) + 1000.0)]
     assert reference_problem(p, small).model.window() == (None, 8)
+    from skyfit.fit.photo import sun_window as lagged_window  # the lagged Bruneton fits' tables: the same span
+
+    assert lagged_window(p, p.param.initial_vector(), 8) == (None, 8)
     assert fit_settings({"sigma_reference_axis": "whole"}).sigma_reference_axis == "whole"
     with pytest.raises(FitError, match="fit.sigma_reference_axis must be window or whole, got 'half'"):
         fit_settings({"sigma_reference_axis": "half"})

@@ -78,7 +78,7 @@ from ..scattering.single import ray_parameters
 from ..transmittance import make_integrator
 from .laplace import (bound_slots, covariance_summary, derived_functions, display_names, laplace_summary,
                       physical_slot_values, transform_jacobian)
-from .model import FitProblem, SkyModel
+from .model import FitProblem, SkyModel, sun_zenith_span
 from .optimise import FitOptions, curved, fit
 from .parameters import (MIE_G2_DEFAULT, MIE_HG_WEIGHT_DEFAULT, NUISANCE, PARAMETERS, TWO_TERM_HG, FitError, Parameterisation,
                          inside_bounds)
@@ -119,7 +119,7 @@ instead of 2017's whole mu_s axis of ``REFERENCE_TABLES[2]`` texels, which gives
 elevation opposite the sun, where the window's 6 texels are within 0.3 % of tables of twice the texels in every
 dimension, and build 4.5x faster (docs/uncertainty.md, "A reference for the fit's suns"). False (``fit.sigma_reference_axis:
 whole``): the whole axis, as every budget before session 18 was measured. Not where a ``sun_zenith_offset`` is fitted
-(the sun moves) or an observer is in space (:func:`sun_zenith_span`)."""
+(the sun moves) or an observer is in space (:func:`skyfit.fit.model.sun_zenith_span`)."""
 
 
 @dataclasses.dataclass
@@ -190,22 +190,6 @@ class ReferenceModel(SkyModel):
                        table_orders=self.reference_orders,
                        mu_s_range=None if mu_s_range is None else [float(v) for v in mu_s_range])
         return out
-
-
-def sun_zenith_span(problem: FitProblem) -> tuple[float, float] | None:
-    """The smallest and largest sun zenith angle over ``problem``'s observations [deg]; None where a
-    ``sun_zenith_offset`` is fitted (the sun moves with it), an observer is at or above the top of the atmosphere (the
-    tables are looked up where its rays enter, under other sun angles: :meth:`SkyModel.sun_tables`'s rule), or there
-    are no observations."""
-    top = float(problem.param.base.top_radius - problem.param.base.bottom_radius)
-    if ("sun_zenith_offset" in problem.param.free or not problem.observations
-            or any(float(o.altitude_m) >= top for o in problem.observations)):
-        return None
-    with torch.no_grad():
-        ph = problem.param.to_physical(problem.param.initial_vector(problem.param.base.dtype, problem.param.base.device))
-        cos = torch.cat([problem.sun_vectors(ph, i).reshape(-1, 3)[:, 2] for i in range(len(problem.observations))])
-    zen = torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0)))
-    return float(zen.min()), float(zen.max())
 
 
 def reference_problem(problem: FitProblem, reference: SkyModel | None = None) -> FitProblem:

@@ -260,6 +260,24 @@ def channel_matrix(model_wavelengths: Tensor, obs: Observation) -> Tensor:
     return hit.to(lam.dtype)
 
 
+def sun_zenith_span(problem: "FitProblem", x: Tensor | None = None) -> tuple[float, float] | None:
+    """The smallest and largest sun zenith angle over ``problem``'s observations at ``x`` (default its starting
+    values) [deg]: the suns a fit's Bruneton tables must span. None where a ``sun_zenith_offset`` is fitted (the sun
+    moves with it), an observer is at or above the top of the atmosphere (the tables are looked up where its rays
+    enter, under other sun angles: :meth:`SkyModel.sun_tables`'s rule), or there are no observations."""
+    base = problem.param.base
+    top = float(base.top_radius - base.bottom_radius)
+    if ("sun_zenith_offset" in problem.param.free or not problem.observations
+            or any(float(o.altitude_m) >= top for o in problem.observations)):
+        return None
+    with torch.no_grad():
+        x = problem.param.initial_vector(base.dtype, base.device) if x is None else x
+        ph = problem.param.to_physical(x)
+        cos = torch.cat([problem.sun_vectors(ph, i).reshape(-1, 3)[:, 2] for i in range(len(problem.observations))])
+    zen = torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0)))
+    return float(zen.min()), float(zen.max())
+
+
 def aerosol_log_depth(atm: Atmosphere) -> Tensor:
     """ln of the aerosol's vertical optical depth at each of the atmosphere's wavelengths, shape (W,). [1]"""
     return torch.log(atm.mie_extinction * atm.mie_column_height)

@@ -59,7 +59,7 @@ from ..io.photo import LinearPhoto, block_view, exif_location, exif_stamps, read
 from ..scattering.bruneton_tables import SUN_MARGIN_DEG, SUN_SPACING_DEG
 from ..scattering.bruneton_tables import sun_window as sun_mu_s_window
 from .data import Observation
-from .model import FitProblem, aerosol_log_depth, applied_lens, lens_directions, tilt_directions
+from .model import FitProblem, aerosol_log_depth, applied_lens, lens_directions, sun_zenith_span, tilt_directions
 from .optimise import CURVED_PRECISION_TOL, curved, resolved_method
 from .optimise import fit as optimise
 from .parameters import CAMERA_RESPONSE, NUISANCE
@@ -1567,16 +1567,13 @@ docs/multiple/sun_window.json, docs/multiple_scattering.md "One sun's mu_s windo
 def sun_window(problem: FitProblem, x: torch.Tensor, texels: int) -> tuple[tuple[float, float] | None, int]:
     """The sun zenith cosines (lo, hi) and texel count of Bruneton tables for ``problem``'s suns at ``x``
     (:func:`skyfit.scattering.bruneton_tables.sun_window` with :data:`MS_SUN_MARGIN_DEG` and
-    :data:`MS_SUN_SPACING_DEG`); ``(None, texels)`` (2017's axis of ``texels``) where a fitted sun zenith offset moves
-    the sun during a fit."""
-    if "sun_zenith_offset" in problem.param.free or not problem.observations:
+    :data:`MS_SUN_SPACING_DEG`); ``(None, texels)`` (2017's axis of ``texels``) where
+    :func:`~skyfit.fit.model.sun_zenith_span` has none (a fitted sun zenith offset moves the sun during a fit; an
+    observer in space)."""
+    span = sun_zenith_span(problem, x)
+    if span is None:
         return None, texels
-    with torch.no_grad():
-        ph = problem.param.to_physical(x)
-        zen = [torch.rad2deg(torch.arccos(problem.sun_vectors(ph, i).reshape(-1, 3)[:, 2].clamp(-1.0, 1.0)))
-               for i in range(len(problem.observations))]
-    return sun_mu_s_window(min(float(z.min()) for z in zen), max(float(z.max()) for z in zen), texels,
-                           MS_SUN_MARGIN_DEG, MS_SUN_SPACING_DEG)
+    return sun_mu_s_window(*span, texels, MS_SUN_MARGIN_DEG, MS_SUN_SPACING_DEG)
 
 
 def freeze_tables(problem: FitProblem, x: torch.Tensor, bruneton: "SkyModel | None" = None,
