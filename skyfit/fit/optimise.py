@@ -520,16 +520,16 @@ def curved(problem: FitProblem, x0: Tensor, cov_x: Tensor, tol: float = CURVED_T
                                       options={"gtol": tol, "norm": 2, "maxiter": iterations})
     # scipy flags a run that reaches gtol on its last allowed iteration as out of iterations (status 1): its
     # whitened gradient is under tol all the same, and it stands (held-out synthetic case 16: |g| 0.0042 after 30)
-    reached = out.success or (out.status == 1 and float(np.linalg.norm(out.jac)) <= tol)
+    gnorm = float(np.linalg.norm(out.jac))  # the whitened gradient where scipy stopped
+    reached = out.success or (out.status == 1 and gnorm <= tol)
     # status 2: "desired error not necessarily achieved due to precision loss", at the loss's resolution
-    at_precision = (precision_tol is not None and out.status == 2
-                    and float(np.linalg.norm(out.jac)) <= precision_tol)
+    at_precision = precision_tol is not None and out.status == 2 and gnorm <= precision_tol
     reached = reached or at_precision
     if not reached or failed or not math.isfinite(float(out.fun)):
         return None
     x = to_x(out.x).detach()
     f = float(out.fun) / n
-    reason = (f"precision loss with the whitened gradient {float(np.linalg.norm(out.jac)):.2g} under {precision_tol:g}"
+    reason = (f"precision loss with the whitened gradient {gnorm:.2g} under {precision_tol:g}"
               if at_precision and not out.success else f"whitened gradient under {tol:g}")
     conv = {"converged": True, "reason": reason, "iterations": int(out.nit), "adam_steps": 0,
             "method": "bfgs (known curvature)", "evaluations": len(history), "grad_norm": math.nan, "rel_change": math.nan,

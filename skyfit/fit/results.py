@@ -18,7 +18,7 @@ import torch
 from ..atmosphere import Atmosphere
 from ..transmittance import integrator_from_spec
 from .budget import CLUSTERS, DISCREPANCY_DEFAULT, ReferenceModel, uncertainty
-from .model import FitProblem, SkyModel
+from .model import FitProblem, SkyModel, aerosol_log_depth
 from .optimise import FitOptions, OptimiseResult
 from .parameters import PARAMETERS, FitError, Parameterisation, inside_bounds
 from .problem import RUN_SECTIONS, base_atmosphere
@@ -40,10 +40,8 @@ optical depth at 550 nm reaches this gets a note in RESULT.json's ``notes`` to r
 def model_notes(problem: FitProblem, x: torch.Tensor) -> list[str]:
     """What the fitted values say about the fit's own model: a hazy sky fitted with Hillaire's multiple scattering
     (:data:`HILLAIRE_HAZE_AOD`); [] otherwise."""
-    from .model import aerosol_log_depth
-
     m = problem.model
-    if m.orders < 2 or getattr(m, "multiple", None) != "hillaire" or getattr(m, "lagged", False):
+    if m.orders < 2 or m.multiple != "hillaire":
         return []
     with torch.no_grad():
         atm = problem.param.atmosphere(problem.param.to_physical(x))

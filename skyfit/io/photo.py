@@ -731,12 +731,18 @@ def oriented(a: np.ndarray, orientation: int) -> np.ndarray:
     return np.ascontiguousarray(a)
 
 
+def _display_orientation(frame: _Frame) -> int:
+    """The EXIF Orientation that reading ``frame`` applies (:func:`_displayed`): the file's, 1 for HEIF (libheif turned
+    it in decoding)."""
+    return 1 if frame.kind == "heif" else frame.exif.get("orientation", 1)
+
+
 def _displayed(frame: _Frame) -> _Frame:
     """``frame`` turned as its EXIF Orientation says it is displayed, so that the fit, ``--mask``, RESULT.png and
     every pixel position in RESULT.json read the photo as its owner sees it in a viewer (a phone held up writes
     6 or 8). Not for HEIF: libheif applies the file's own transforms (irot/imir) in decoding, and its EXIF keeps
     the original value."""
-    o = frame.exif.get("orientation", 1) if frame.kind != "heif" else 1
+    o = _display_orientation(frame)
     if o != 1:
         for name in ("codes", "high", "low", "valid"):
             setattr(frame, name, oriented(getattr(frame, name), o))
@@ -1275,7 +1281,7 @@ def _read_linear_image(path: str, kind: str, exposures, linear: bool, response) 
 def _frame_list_meta(frames, rel_exp, sources) -> list[dict]:
     return [{"path": f.path, "exposure_s": f.exif.get("exposure_s"), "f_number": f.exif.get("f_number"),
              "iso": f.exif.get("iso"), "relative_exposure": float(e), "exposure_source": s,
-             "orientation": 1 if f.kind == "heif" else f.exif.get("orientation", 1)}
+             "orientation": _display_orientation(f)}
             for f, e, s in zip(frames, rel_exp, sources)]
 
 
