@@ -138,6 +138,9 @@ def photos(tmp_path_factory):
     (d / "cheap.yaml").write_text(text + "\nfit:\n  orders: 1\n  max_iter: 5\n  adam_steps: 3\n  starts: 1\n"
                                   "  view_samples: 4\n  integrator: gauss:samples=4\n  rule: trapezoid\n"
                                   "  wavelengths: 450,550,650\n")
+    # the cheap config with iterations enough to settle: a lens refitted with the tilt after five iterations (tilt
+    # still 3 deg off) is as rough as they are (the grey photo's took -0.034, 0.011 settled)
+    (d / "settled.yaml").write_text((d / "cheap.yaml").read_text().replace("max_iter: 5", "max_iter: 200"))
     return d
 
 
@@ -733,7 +736,7 @@ def test_a_grey_photo_is_fitted_as_one_channel(photos, tmp_path, capsys):
     Image.fromarray(grey, "L").save(tmp_path / "grey.jpg", quality=95)
     out = tmp_path / "out"
     out.mkdir()
-    rc, so, se = run(_fit_argv(tmp_path / "grey.jpg", out / "r.json", photos / "cheap.yaml", T1), capsys)
+    rc, so, se = run(_fit_argv(tmp_path / "grey.jpg", out / "r.json", photos / "settled.yaml", T1), capsys)
     assert rc == 0, se
     r = check_photo_result(out, "grey.jpg")
     assert r["photo"]["monochrome"] is True
@@ -924,7 +927,7 @@ def test_a_hidden_suns_starting_headings_are_tried_side_by_side(photos, monkeypa
     assert abs((heading - CAM["up_azimuth_deg"] + 180) % 360 - 180) < 8.0  # 5 iterations: loose, as above
 
 
-def test_a_lens_measured_from_the_sun_is_fitted_with_the_tilt_from_there(photos, monkeypatch, tmp_path):
+def test_a_lens_measured_from_the_sun_is_fitted_with_the_tilt_from_there(photos, monkeypatch):
     """The refit that tries a lens measured from the sun starts from it and fits it with the tilt (LENS_WITH_TILT),
     under the sun datum, instead of holding it: started 0.03 off the photo's true equidistant lens (2.6 deg at 52 deg
     from the axis), it comes back within 0.01 of 0, and the note gives both values (seed-0 synthetic case 19: 0.046
@@ -933,9 +936,7 @@ def test_a_lens_measured_from_the_sun_is_fitted_with_the_tilt_from_there(photos,
 
     monkeypatch.setattr(fit_photo_module, "lens_from_sun", lambda problem, x, projection: (0.03, "a test's start"))
     monkeypatch.setattr(fit_photo_module, "projection_decision", lambda candidates, detected: list(candidates[:1]))
-    cfg = tmp_path / "settled.yaml"  # the cheap config, with iterations enough to settle
-    cfg.write_text((photos / "cheap.yaml").read_text().replace("max_iter: 5", "max_iter: 200"))
-    pf = skyfit.fit_photo(photos / "sky.jpg", time=T1, location=LOC, config=cfg, laplace=False)
+    pf = skyfit.fit_photo(photos / "sky.jpg", time=T1, location=LOC, config=photos / "settled.yaml", laplace=False)
     note = [n for n in pf.result["notes"] if n.startswith("lens departure")]
     assert len(note) == 1, pf.result["notes"]
     m = re.search(r"lens_radial \+0\.0300 measured from a test's start .*?, ([+-][\d.]+) fitted with the tilt", note[0])
