@@ -6,7 +6,7 @@ the total radiance at 550 nm over 5-90 deg elevation x 0-180 deg from the sun's 
 * the fits' Hillaire model: `configs/kider.yaml`'s LUT (32 directions x 12 steps) on Chapman single scattering with
   16 Gauss view nodes, and
 * the error budget's converged reference (skyfit.fit.budget.ReferenceModel: Gauss-32 optical depth, 128 Gauss view
-  nodes, Bruneton tables 16 x 64 x window x 8 with 6 orders spanning the sun),
+  nodes, Bruneton tables 16 x 64 x window x 8 with 6 orders spanning the sun, Gauss-Legendre view rays),
 
 as the RMS, lowest and highest of Hillaire / reference - 1, and at the zenith.
 
