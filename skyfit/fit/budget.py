@@ -170,7 +170,8 @@ class ReferenceModel(SkyModel):
             return None
         t = self.reference_tables
         mu_s_range, texels = self.window()
-        return precompute(atm, orders=self.reference_orders, progress=False, mu_s_range=mu_s_range, quadrature=REFERENCE_QUADRATURE,
+        return precompute(atm, orders=self.reference_orders, progress=False, mu_s_range=mu_s_range,
+                          quadrature=REFERENCE_QUADRATURE,
                           sizes=TableSizes(scattering_r=t[0], scattering_mu=t[1], scattering_mu_s=texels, scattering_nu=t[3]))
 
     def renderer(self, atm, altitude_m: float = 0.0, tables=None):
