@@ -51,8 +51,7 @@ def main(argv=None) -> int:
                          "studies of docs/uncertainty.md before session 18: whole)")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
-    truth_args = argparse.Namespace(size=10, wavelengths=3, truth_light=64, truth_view=64, truth_tables="16,64,16,8",
-                                    truth_orders=8, reference_axis=a.reference_axis)  # coverage_model_error.py's defaults
+    truth_args = C.truth_args(reference_axis=a.reference_axis)
     for k in (int(v) for v in a.skies.split(",")):
         rng = np.random.default_rng([a.seed, k])
         t = C.draw_truth(rng, k % 2 == 1)

@@ -64,6 +64,17 @@ FIT = {"orders": 2, "multiple": "hillaire", "integrator": "chapman", "view_sampl
        "sun_mask_deg": 3.0, "min_elevation_deg": 2.0, "max_iter": 200}
 
 
+TRUTH_DEFAULTS = {"size": 10, "wavelengths": 3, "truth_light": 64, "truth_view": 64, "truth_tables": "16,64,16,8",
+                  "truth_orders": 8, "reference_axis": "window", "truth_axis": None, "beta_range": "1e-5,8e-5"}
+"""How the truths are observed and rendered (the command line's defaults): what :func:`observe` reads of its args."""
+
+
+def truth_args(**kw) -> argparse.Namespace:
+    """:data:`TRUTH_DEFAULTS` with ``kw`` over them, as :func:`observe` takes them (for the scripts that draw these
+    truths without this one's command line)."""
+    return argparse.Namespace(**{**TRUTH_DEFAULTS, **kw})
+
+
 def draw_truth(rng: np.random.Generator, two_term: bool, beta: tuple[float, float] = (1e-5, 8e-5)) -> dict:
     t = {
         "rayleigh_scale": float(rng.uniform(0.9, 1.1)),
@@ -273,18 +284,18 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--skies", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--size", type=int, default=10, help="fisheye pixels across (a 12 x 12 image has ~100 sky pixels)")
-    ap.add_argument("--wavelengths", type=int, default=3)
-    ap.add_argument("--truth-light", type=int, default=64)
-    ap.add_argument("--truth-view", type=int, default=64)
-    ap.add_argument("--truth-tables", default="16,64,16,8", help="R,MU,MU_S,NU of the truth's Bruneton tables")
-    ap.add_argument("--truth-orders", type=int, default=8)
+    ap.add_argument("--size", type=int, default=TRUTH_DEFAULTS["size"], help="fisheye pixels across (a 12 x 12 image has ~100 sky pixels)")
+    ap.add_argument("--wavelengths", type=int, default=TRUTH_DEFAULTS["wavelengths"])
+    ap.add_argument("--truth-light", type=int, default=TRUTH_DEFAULTS["truth_light"])
+    ap.add_argument("--truth-view", type=int, default=TRUTH_DEFAULTS["truth_view"])
+    ap.add_argument("--truth-tables", default=TRUTH_DEFAULTS["truth_tables"], help="R,MU,MU_S,NU of the truth's Bruneton tables")
+    ap.add_argument("--truth-orders", type=int, default=TRUTH_DEFAULTS["truth_orders"])
     ap.add_argument("--refits", type=int, default=1, help="the budget's lagged refits (fit.sigma_refits)")
-    ap.add_argument("--reference-axis", choices=("window", "whole"), default="window",
+    ap.add_argument("--reference-axis", choices=("window", "whole"), default=TRUTH_DEFAULTS["reference_axis"],
                     help="the truth's and the budget reference's Bruneton tables: spanning the sky's sun (default, "
                          "fit.sigma_reference_axis) or 2017's whole mu_s axis (every study before session 18)")
     ap.add_argument("--truth-axis", choices=("window", "whole"), help="the truth's tables alone (default: --reference-axis)")
-    ap.add_argument("--beta-range", default="1e-5,8e-5", help="LO,HI of the truths' log-uniform Mie beta_550 [1/m]")
+    ap.add_argument("--beta-range", default=TRUTH_DEFAULTS["beta_range"], help="LO,HI of the truths' log-uniform Mie beta_550 [1/m]")
     ap.add_argument("--polish", type=int, default=0, help="the budget's reference polish after the refits "
                     "(fit.sigma_polish: Levenberg-Marquardt steps on the reference, skyfit.fit.budget.reference_polish)")
     ap.add_argument("--compare", default="", help="other discrepancy models beside the default total, MODEL[:G[:FORM]],... "

@@ -7,8 +7,8 @@ Mie beta_550 in 1e-4 - 3e-4 1/m (AOD 0.15-0.55) from seed 5, the draw of docs/un
 skies; odd skies have a two-term HG aerosol. Each sky is fitted from the same start with the coverage study's fit
 model (Hillaire 16 x 16, Chapman, 16 Gauss view nodes; free Rayleigh scale, beta_550, Angstrom exponent, H_M, g,
 ground albedo) and with ``multiple: bruneton_lagged`` at 4 orders on a photo fit's tables and rules
-(skyfit.fit.photo.PHOTO_TABLES, Gauss view rays, PHOTO_DENSITY) through ``skyfit fit``'s lagged path
-(skyfit.fit.photo.lagged_fit, LAGGED_REFRESHES). One JSON line per fit; all of them in OUT.
+(skyfit.fit.photo.PHOTO_TABLES, Gauss view rays, PHOTO_DENSITY) through ``skyfit fit``'s own solver
+(skyfit.fit.run.solve: skyfit.fit.photo.lagged_fit, LAGGED_REFRESHES). One JSON line per fit; all of them in OUT.
 
     OMP_NUM_THREADS=1 .venv/bin/python scripts/hazy_fits.py --skies 0,1,2,3 --out docs/hillaire/hazy_fits.json
 """
@@ -26,9 +26,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import coverage_model_error as C  # noqa: E402
 
-from skyfit.fit.optimise import fit  # noqa: E402
-from skyfit.fit.photo import LAGGED_REFRESHES, PHOTO_DENSITY, PHOTO_TABLES, lagged_fit  # noqa: E402
+from skyfit.fit.photo import PHOTO_DENSITY, PHOTO_TABLES  # noqa: E402
 from skyfit.fit.problem import fit_settings, prepare  # noqa: E402
+from skyfit.fit.run import solve  # noqa: E402
 
 SETTINGS = {"hillaire": {},
             "lagged4photo": {"multiple": "bruneton_lagged", "orders": 4, "table_sizes": list(PHOTO_TABLES),
@@ -42,8 +42,7 @@ def main() -> None:
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
     torch.set_num_threads(1)
-    args = argparse.Namespace(seed=5, size=10, wavelengths=3, truth_light=64, truth_view=64, truth_tables="16,64,16,8",
-                              truth_orders=8, reference_axis="window", truth_axis="window", beta_range="1e-4,3e-4")
+    args = C.truth_args(seed=5, beta_range="1e-4,3e-4")
     rows = []
     for k in [int(v) for v in a.skies.split(",")]:
         rng = np.random.default_rng([args.seed, k])
@@ -56,10 +55,7 @@ def main() -> None:
             prep = prepare([obs], cfg, fit_settings(cfg["fit"]))
             problem = prep.fit_problem()
             c0 = time.process_time()
-            if problem.model.lagged:
-                res = lagged_fit(problem, prep.settings.options(False), LAGGED_REFRESHES, bruneton=problem.model.factor_model())
-            else:
-                res = fit(problem, prep.settings.options(False))
+            res = solve(problem, prep.settings.options(False))
             v = problem.param.physical_dict(res.x)
             aod = v["mie_beta_550"] * v["mie_scale_height"]
             row = {"sky": k, "two_term": k % 2 == 1, "setting": name, "aod_true": aod_t, "aod_fit": aod,

@@ -8,8 +8,8 @@ each one's noisy radiance over the last's (the same noise draw: the ratio is of 
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
+import functools
 import sys
 from pathlib import Path
 
@@ -30,16 +30,15 @@ SKIES = [(5, (1e-4, 3e-4), 0), (5, (1e-4, 3e-4), 3), (0, (1e-5, 8e-5), 0), (0, (
 
 def main() -> None:
     torch.set_num_threads(2)
-    saved = budget.REFERENCE_QUADRATURE
+    args = C.truth_args()
     for seed, beta, k in SKIES:
-        args = argparse.Namespace(seed=seed, size=10, wavelengths=3, truth_light=64, truth_view=64, truth_tables="16,64,16,8",
-                                  truth_orders=8, reference_axis="window", truth_axis="window")
         t = C.draw_truth(np.random.default_rng([seed, k]), k % 2 == 1, beta)
         values = {}
-        for name, rule in RULES.items():
-            budget.REFERENCE_QUADRATURE = rule
+        for name, q in RULES.items():  # the truth's ReferenceModel with the rule's view rays and density directions
+            C.ReferenceModel = functools.partial(budget.ReferenceModel, ray_rule=q.ray_rule,
+                                                 density_directions=(q.density_theta, q.density_phi, q.density_zenith))
             values[name] = C.observe(t, args, np.random.default_rng(0))[0].values
-        budget.REFERENCE_QUADRATURE = saved
+        C.ReferenceModel = budget.ReferenceModel
         last = values["gauss 32x64"]
 
         def q(r: torch.Tensor) -> str:

@@ -139,11 +139,15 @@ class ReferenceModel(SkyModel):
 
     (the bracket: orders >= 2 and the ground's indirect light). ``orders`` 1 keeps single scattering.
 
-    Attributes (besides :class:`SkyModel`'s, of which ``integrator``, ``view_samples`` and ``rule`` are set here):
+    Attributes (besides :class:`SkyModel`'s, of which ``integrator``, ``view_samples`` and ``rule`` are set here, and
+    ``ray_rule`` and ``density_directions`` default to :data:`REFERENCE_QUADRATURE`'s):
         reference_tables: scattering-table sizes (R, MU, MU_S, NU) of the orders >= 2.
         reference_orders: orders in those tables.
     """
 
+    ray_rule: str = REFERENCE_QUADRATURE.ray_rule
+    density_directions: tuple[int, ...] = (REFERENCE_QUADRATURE.density_theta, REFERENCE_QUADRATURE.density_phi,
+                                           REFERENCE_QUADRATURE.density_zenith)
     reference_tables: tuple[int, int, int, int] = REFERENCE_TABLES
     reference_orders: int = REFERENCE_ORDERS
     sun_window: bool = REFERENCE_SUN_WINDOW
@@ -171,7 +175,7 @@ class ReferenceModel(SkyModel):
         t = self.reference_tables
         mu_s_range, texels = self.window()
         return precompute(atm, orders=self.reference_orders, progress=False, mu_s_range=mu_s_range,
-                          quadrature=REFERENCE_QUADRATURE,
+                          quadrature=self.quadrature(),
                           sizes=TableSizes(scattering_r=t[0], scattering_mu=t[1], scattering_mu_s=texels, scattering_nu=t[3]))
 
     def renderer(self, atm, altitude_m: float = 0.0, tables=None):
@@ -196,9 +200,8 @@ class ReferenceModel(SkyModel):
         if self.orders > 1:
             mu_s_range, texels = self.window()
             out.update(multiple="bruneton", table_sizes=list(self.reference_tables[:2]) + [texels, self.reference_tables[3]],
-                       table_orders=self.reference_orders, ray_rule=REFERENCE_QUADRATURE.ray_rule,
-                       density_directions=[REFERENCE_QUADRATURE.density_theta, REFERENCE_QUADRATURE.density_phi,
-                                           REFERENCE_QUADRATURE.density_zenith],
+                       table_orders=self.reference_orders, ray_rule=self.ray_rule,
+                       density_directions=list(self.density_directions),
                        mu_s_range=None if mu_s_range is None else [float(v) for v in mu_s_range])
         return out
 

@@ -58,15 +58,21 @@ def run_fit(data: Sequence[str | Path], config: dict, out: str | Path, *, overri
     check(prep.estimate(evaluations=s.starts * (s.adam_steps + 2 * s.max_iter)), force=force, max_seconds=MAX_RUN_SECONDS,
           device=str(device), hint="reduce --max-samples, --view-samples, the --integrator's samples, --starts, --max-iter or --adam-steps, "
                "or add --force")
-    if problem.model.lagged:  # Bruneton's orders >= 2 as a factor, frozen per fit and refreshed at its result
-        from .photo import LAGGED_REFRESHES, lagged_fit
-
-        res = lagged_fit(problem, s.options(progress), LAGGED_REFRESHES, bruneton=problem.model.factor_model())
-    else:
-        res = fit(problem, s.options(progress))
+    res = solve(problem, s.options(progress))
     return write_result(problem, res, out, command="fit", settings=dataclasses.asdict(s), config=config,
                         config_source=config_source, base_dist=prep.base_dist, dtype=s.dtype, t0=t0, laplace=laplace,
                         plots=plots)
+
+
+def solve(problem, options: FitOptions):
+    """The fit ``skyfit fit`` runs on a prepared problem: :func:`skyfit.fit.optimise.fit`, or for
+    ``multiple: bruneton_lagged`` :func:`skyfit.fit.photo.lagged_fit` (Bruneton's orders >= 2 as a factor, frozen per
+    fit and refreshed at its result)."""
+    if problem.model.lagged:
+        from .photo import LAGGED_REFRESHES, lagged_fit
+
+        return lagged_fit(problem, options, LAGGED_REFRESHES, bruneton=problem.model.factor_model())
+    return fit(problem, options)
 
 
 # -- evaluate -----------------------------------------------------------------------------------
