@@ -224,6 +224,7 @@ def one_sky(k: int, args) -> dict:
            "n_samples": info["n_samples"]}
     for name in sigmas:
         row[f"z_{name}"], row[f"in68_{name}"], row[f"in95_{name}"] = {}, {}, {}
+    row["estimates"] = {name: {} for name in ["noise", *sigmas]}  # name -> parameter -> [value, sigma, 68 %, 95 %]
     z68, z95 = 0.9944578832097535, 1.959963984540054
     for n in REPORTED + list(SIDE):
         p = SIDE.get(n, n)
@@ -238,7 +239,27 @@ def one_sky(k: int, args) -> dict:
                 row["fitted"][n] = v
             row[f"z_{name}"][n] = None if not s_ else (v - tv) / s_
             row[f"in68_{name}"][n], row[f"in95_{name}"][n] = inside(i68, tv), inside(i95, tv)
+            row["estimates"][name][n] = [v, s_, i68, i95]
+    add_extended(row)
     return row
+
+
+def add_extended(row: dict) -> None:
+    """Score ``<name>_extended`` beside each corrected reading of ``row``: its intervals extended to the fitted
+    value (the fit's own estimate kept inside, the corrected one's width kept on its far side). z: the truth's
+    distance from the segment between the two values in the corrected sigma (0 between them)."""
+    est = row.get("estimates", {})
+    for name in [n for n in list(est) if n.endswith("_corrected")]:
+        ext = f"{name[:-len('_corrected')]}_extended"
+        row[f"z_{ext}"], row[f"in68_{ext}"], row[f"in95_{ext}"], est[ext] = {}, {}, {}, {}
+        for n, (c, s_, i68, i95) in est[name].items():
+            v, tv = row["fitted"][n], row["truth"][n]
+            grow = lambda i: None if i is None else [min(i[0], v), max(i[1], v)]
+            e68, e95 = grow(i68), grow(i95)
+            lo, hi = min(v, c), max(v, c)
+            row[f"z_{ext}"][n] = None if not s_ else (0.0 if lo <= tv <= hi else (tv - hi if tv > hi else tv - lo) / s_)
+            row[f"in68_{ext}"][n], row[f"in95_{ext}"][n] = inside(e68, tv), inside(e95, tv)
+            est[ext][n] = [v, s_, e68, e95]
 
 
 def sigma_names(rows: list[dict]) -> list[str]:

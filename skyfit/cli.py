@@ -584,9 +584,10 @@ def _add_fit_options(p, D) -> None:
     p.add_argument("--sigma-discrepancy", choices=DISCREPANCY_MODELS,
                    help=f"--sigma total's discrepancy term: a white relative error floor, a cluster-robust sandwich over "
                         f"sky regions, or the larger of the two (default {D.sigma_discrepancy}; docs/uncertainty.md)")
-    p.add_argument("--sigma-phase", dest="sigma_phase", action="store_true", default=None,
-                   help="--sigma total: add the phase term, the spread and shift of a two-term Henyey-Greenstein refit "
-                        "(one-term HG fits with g free; one more fit; docs/uncertainty.md, \"The phase term\")")
+    p.add_argument("--sigma-phase", dest="sigma_phase", action=argparse.BooleanOptionalAction, default=None,
+                   help="--sigma total: the phase term, the spread and shift of a two-term Henyey-Greenstein refit "
+                        "(one-term HG fits with g free; one more fit; on by default, --no-sigma-phase for the faster, "
+                        "narrower sigma of a one-lobed aerosol; docs/uncertainty.md, \"The phase term\")")
     p.add_argument("--location", help="LAT,LON[,ELEV] [deg, deg, m]: a photo's place (default: its EXIF GPS position), "
                    "Kider data's site (default: the Kider site)")
     p.add_argument("--timezone", type=float, help="Kider data: UTC offset of the folder times [h] (default -4)")

@@ -246,6 +246,24 @@ def test_phase_term_asked_where_it_does_not_apply_says_why():
     assert out["sigma"] == uncertainty(prob, x)["sigma"]
 
 
+def test_a_fit_with_laplace_has_the_phase_term_unless_turned_off():
+    """The default (fit.sigma_phase true since session 20): RESULT.json's laplace of a one-term HG fit with g free
+    carries the two-term refit, which widens every sigma (what the refit finds is the subject of the tests above, with
+    the fit's own renderer as the reference); ``sigma_phase: false`` leaves it out (docs/uncertainty.md, "Three draws, 60 skies")."""
+    from skyfit.fit.results import result_dict
+
+    truth = {**TRUTH, "mie_g2": -0.3, "mie_hg_weight": 0.9}
+    prob, x, _ = _sky(0, size=12, phase="two_term_hg", truth=truth)
+    res = fit(prob, TIGHT, x0=x)
+    kw = dict(command="fit", config={}, config_source="test", base_dist=1.0, dtype="float64", seconds=0.0, laplace=True)
+    on = result_dict(prob, res, settings=fit_settings(None, {}).__dict__, **kw)["laplace"]
+    off = result_dict(prob, res, settings={**fit_settings(None, {}).__dict__, "sigma_phase": False}, **kw)["laplace"]
+    assert "phase_expansion" in on["budget"] and "phase_expansion" not in off["budget"]
+    # at least the plain total along every direction (loewner_upper), plus the shift: wider for every parameter
+    assert all(on["sigma"][n] >= off["sigma"][n] * (1 - 1e-9) for n in off["sigma"] if off["sigma"][n])
+    assert "sigma_phase" not in off["budget"] and on["budget"]["sigma_phase"]["mie_g"] > 0
+
+
 def test_phase_spread_without_a_lobe_is_the_profile_in_the_weight():
     """Where the two-term refit ends at f = 1 (an HG sky) the phase spread holds g2 at each backward lobe tried and
     takes the Gauss-Newton sigma of f there (the model is linear in f). Brute force: refitting every other parameter
@@ -358,7 +376,10 @@ def test_discrepancy_setting_reaches_the_budget_and_bad_values_fail():
     with pytest.raises(FitError, match=r"fit.sigma_clusters must be >= 2, got 1"):
         fit_settings({"sigma_clusters": 1})
     args = build_parser().parse_args(["fit", "sky.exr", "--config", "earth", "--out", "r.json", "--sigma-phase"])
-    assert fit_settings(None, _fit_overrides(args)).sigma_phase is True and fit_settings(None, {}).sigma_phase is False
+    assert fit_settings(None, _fit_overrides(args)).sigma_phase is True and fit_settings(None, {}).sigma_phase is True
+    args = build_parser().parse_args(["fit", "sky.exr", "--config", "earth", "--out", "r.json", "--no-sigma-phase"])
+    assert fit_settings(None, _fit_overrides(args)).sigma_phase is False
+    assert fit_settings({"sigma_phase": False}).sigma_phase is False
     with pytest.raises(FitError, match="sigma_phase must be true or false"):
         fit_settings({"sigma_phase": "yes"})
     clean, view, _ = _clean(TRUTH, 8)

@@ -120,11 +120,13 @@ PHOTO_CLUSTERS = 24
 sandwich needs G - 1 >= P; its variances' relative spread is about sqrt(2 / (G - 1)), 0.3)."""
 PHOTO_SETTINGS = {"loss": "cauchy", "orders": 4, "multiple": "bruneton", "table_sizes": list(PHOTO_TABLES), "ray_rule": "gauss",
                   "density_directions": list(PHOTO_DENSITY), "starts": 1, "adam_steps": 30, "max_iter": 80, "sigma_clusters": PHOTO_CLUSTERS,
-                  "initial": {"mie_aod_550": 0.1, "mie_angstrom_alpha": 1.0, "mie_g": 0.7}}
+                  "initial": {"mie_aod_550": 0.1, "mie_angstrom_alpha": 1.0, "mie_g": 0.7}, "sigma_phase": False}
 """Fit settings of a photo unless the config's ``fit:`` section or keywords say otherwise: a robust loss
 (obstacles the masks miss); four orders of Bruneton's tables (:data:`PHOTO_TABLES`) frozen per fit around live single
 scattering (:func:`lagged_fit`), since multiple scattering makes a third to a half of a hazy sky's radiance, and
-Hillaire's isotropic approximation of it biased the aerosol (docs/photos.md)."""
+Hillaire's isotropic approximation of it biased the aerosol (docs/photos.md). The phase term (``sigma_phase``, on for
+other fits) stays off: its two-term refit holds the reference's factor where a photo follows its own, and it is not
+measured on photos; a photo's sigma has the validation term (:data:`PHOTO_VALIDATION_SIGMA`) instead."""
 SIGMA_RELATIVE = 0.03
 """Relative error of a block's value besides its measured variance: JPEG, demosaicing, the sensor's
 non-linearity, the model's own error (docs/photos.md). [1]"""

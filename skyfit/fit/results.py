@@ -102,7 +102,7 @@ def result_dict(problem: FitProblem, res: OptimiseResult, *, command: str, setti
                                         options=FitOptions(starts=1, adam_steps=0, max_iter=int(st.get("max_iter", 100))),
                                         discrepancy=st.get("sigma_discrepancy") or DISCREPANCY_DEFAULT,
                                         clusters=int(st.get("sigma_clusters") or CLUSTERS),
-                                        expand=bool(st.get("sigma_phase", False)))
+                                        expand=bool(st.get("sigma_phase", True)))
     return result
 
 
