@@ -32,7 +32,7 @@ from .render.auto import RENDER_DEFAULTS, choose, parse_accuracy, setting_fields
 from .render.colour import spectral_to_xyz, tonemap_srgb8, xyz_to_linear_srgb
 from .render.sky import render_vectors
 from .scattering.bruneton_tables import TableSizes
-from .scattering.multiple import PrecomputedAtmosphere, precompute
+from .scattering.multiple import ACCURATE_QUADRATURE, PrecomputedAtmosphere, precompute
 from .transmittance import parse_integrator
 
 ACCURATE = "rel=1e-4"
@@ -463,6 +463,9 @@ def export_luts(source: FitResult | Atmosphere, out_dir: str | Path | None = Non
                 device: str = "cpu", layout: str = "skyfit", precision: str = "f32") -> PrecomputedAtmosphere:
     """Bruneton's precomputed tables of a fitted atmosphere (or any Atmosphere), written as LUTs when asked.
 
+    Precomputed by :data:`~skyfit.scattering.multiple.ACCURATE_QUADRATURE` (Gauss-Legendre view rays; 2017's equal
+    steps put a hazy sky's orders >= 2 too high, docs/luts.md "The view-ray rule of an exported LUT"), whatever the layout.
+
     Args:
         source: a :class:`FitResult` (its atmosphere on ``wavelengths``, default the fit's) or an Atmosphere.
         out_dir: a folder for the LUT files (docs/luts.md); None: only return the tables.
@@ -484,7 +487,7 @@ def export_luts(source: FitResult | Atmosphere, out_dir: str | Path | None = Non
     if layout == "bruneton2017":
         b17.check_precision(precision)  # before the precomputation
     with torch.no_grad():
-        tables = precompute(atm, orders=orders, sizes=table_sizes or TableSizes(), **kw)
+        tables = precompute(atm, orders=orders, sizes=table_sizes or TableSizes(), quadrature=ACCURATE_QUADRATURE, **kw)
     if out_dir is not None and layout == "bruneton2017":
         atm_rgb = source.atmosphere(list(b17.LAMBDAS_RGB_NM), device=device) if isinstance(source, FitResult) else None
         b17.export_bruneton2017(tables, out_dir, precision=precision, atm_rgb=atm_rgb)

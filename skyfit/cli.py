@@ -43,7 +43,7 @@ from .quadrature import RULES
 from .render.auto import RENDER_DEFAULTS, choose, describe, parse_accuracy
 from .scattering.bruneton_tables import TableSizes
 from .scattering.hillaire import hillaire_lut
-from .scattering.multiple import SunBelowTables, precompute
+from .scattering.multiple import ACCURATE_QUADRATURE, SunBelowTables, precompute
 from .scattering.single import SPACINGS
 from .tools.bench import machine_info, run_bench
 from .tools.integrator_calibration import CALIBRATE_QUICK, calibrate_integrators
@@ -781,7 +781,7 @@ def cmd_export_lut(args) -> int:
     if args.layout == "bruneton2017":
         b17 = bruneton2017
         with torch.no_grad():
-            tables = precompute(atm, orders=args.orders, sizes=sizes,
+            tables = precompute(atm, orders=args.orders, sizes=sizes, quadrature=ACCURATE_QUADRATURE,
                                 mu_s_min=b17.skyfit_mu_s_min(b17.UPSTREAM_MU_S_MIN, atm.bottom_radius, atm.top_radius))
         b17.export_bruneton2017(tables, out, precision=args.precision or "f32",
                                 atm_rgb=atmosphere_from_result(res, list(b17.LAMBDAS_RGB_NM), device=device))
@@ -790,7 +790,7 @@ def cmd_export_lut(args) -> int:
                       sun_zeniths=sky_view_suns)
     else:
         with torch.no_grad():
-            tables = precompute(atm, orders=args.orders, sizes=sizes)
+            tables = precompute(atm, orders=args.orders, sizes=sizes, quadrature=ACCURATE_QUADRATURE)
         export_luts(tables, atm, out, format=args.format, rgb=args.rgb)
     info = {"out": str(out), "format": args.format, "orders": args.orders, "seconds": round(time.perf_counter() - t0, 3),
             "channels": "rgb" if args.rgb or args.layout != "skyfit" else "spectral", "layout": args.layout,

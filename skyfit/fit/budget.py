@@ -73,7 +73,7 @@ from torch import Tensor
 
 from ..render.sky import render_vectors
 from ..scattering.bruneton_tables import TableSizes, sun_window
-from ..scattering.multiple import Quadrature, precompute, sky_radiance
+from ..scattering.multiple import ACCURATE_QUADRATURE, Quadrature, precompute, sky_radiance
 from ..scattering.single import ray_parameters
 from ..transmittance import make_integrator
 from .laplace import (bound_slots, covariance_summary, derived_functions, display_names, laplace_summary,
@@ -111,7 +111,7 @@ REFERENCE_TABLES = (16, 64, 16, 8)
 """Bruneton scattering-table sizes (R, MU, MU_S, NU) of the reference's orders >= 2 (the trade study's)."""
 REFERENCE_ORDERS = 6
 """Scattering orders of the reference's Bruneton tables (the trade study's reference_orders)."""
-REFERENCE_QUADRATURE = Quadrature(ray_rule="gauss", density_zenith=2)
+REFERENCE_QUADRATURE = ACCURATE_QUADRATURE
 """The precomputation rules of the reference's Bruneton tables: Gauss-Legendre nodes along the view rays and the two
 density bands nearest the zenith split (:class:`~skyfit.scattering.multiple.Quadrature`; a photo fit's, docs/photos.md,
 "The view ray's rule", "The density directions' pole"). With 2017's equal steps the reference was no reference on a
