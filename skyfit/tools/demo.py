@@ -44,7 +44,7 @@ from ..io.atomic import atomic_path, write_text_atomic
 from ..render import spectral_to_xyz, tonemap_srgb8, xyz_to_linear_srgb
 from ..scattering.bruneton_tables import TableSizes
 from ..scattering.hillaire import hillaire_lut
-from ..scattering.multiple import precompute
+from ..scattering.multiple import ACCURATE_QUADRATURE, precompute
 from ..transmittance import make_integrator
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -311,5 +311,5 @@ def _export(result: dict, lut_dir: Path, quick: bool, device="cpu") -> Path:
     atm = atmosphere_from_result(result, result["model"]["wavelengths_nm"], device=device)
     sizes = TableSizes(64, 16, 32, 8, 8, 16, 8, 4) if quick else TableSizes(128, 32, 32, 8, 16, 64, 16, 8)
     with torch.no_grad():
-        tables = precompute(atm, orders=4, sizes=sizes)
+        tables = precompute(atm, orders=4, sizes=sizes, quadrature=ACCURATE_QUADRATURE)
     return export_luts(tables, atm, lut_dir, format="exr")
