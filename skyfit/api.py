@@ -271,6 +271,16 @@ class FitResult:
         return (self.result.get("laplace") or {}).get("sigma")
 
     @property
+    def corrected(self) -> dict | None:
+        """The estimate corrected for the fit's renderer (None unless fitted with ``laplace=True`` and the total
+        sigma): ``values`` at the converged reference's optimum as the budget's refits find it, with ``sigma``,
+        ``interval68``, ``interval95`` and ``derived``. With the phase term (the default for a one-term
+        Henyey-Greenstein fit with g free) these are the calibrated error bars: they covered a richer model's truth
+        at 68 / 95 % in every parameter over 60 synthetic skies, where :attr:`sigma` about the fitted values
+        under-covers the albedo and beta at 68 % (docs/uncertainty.md, "Three draws, 60 skies")."""
+        return (self.result.get("laplace") or {}).get("corrected")
+
+    @property
     def metrics(self) -> dict:
         """rmse, rmse_units, delta_e, loss, n_samples, per observation."""
         return self.result["metrics"]

@@ -461,7 +461,7 @@ def cmd_fit(args) -> int:
         cor = res.get("laplace", {}).get("corrected")
         if cor and any(cor["values"][n] != v for n, v in summary["free"].items()):
             # the numerically corrected estimate beside the fitted one (docs/uncertainty.md)
-            print("corrected for the fit's setting (laplace.corrected): " + ", ".join(
+            print("corrected for the fit's setting (laplace.corrected; which to read: docs/uncertainty.md): " + ", ".join(
                 f"{n} {cor['values'][n]:.6g}" + (f" +- {cor['sigma'][n]:.3g}" if cor["sigma"].get(n) is not None else "")
                 for n in summary["free"]))
         print(f"loss {m['loss']:.6g}  rmse {m['rmse']:.4g} {m['rmse_units']}  delta_e {m['delta_e']:.3g}  "

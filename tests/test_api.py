@@ -105,6 +105,22 @@ def test_fit_from_an_atmosphere_equals_fit_from_its_config_and_round_trips(scene
     assert len(a.predict()) == 1
 
 
+def test_fit_result_carries_the_corrected_estimate(scene):
+    """FitResult.corrected is the budget's estimate at the reference's optimum: the fitted values plus the numerical
+    shift, its sigma the total's without the shift (never wider); the earth config's Cornette-Shanks phase has no
+    phase term, and the budget says why."""
+    atm, cam, sky = scene
+    obs = skyfit.Observation.from_arrays(sky.radiance, cam, sun=SUN, wavelengths=atm.wavelengths)
+    fit = skyfit.fit(obs, "earth", free=["mie_beta_550", "mie_g", "exposure"], starts=1, laplace=True)
+    cor, budget = fit.corrected, fit.result["laplace"]["budget"]
+    assert set(cor["values"]) == set(fit.free)
+    for n in fit.free:
+        assert cor["values"][n] == pytest.approx(fit.parameters[n] + budget["numerical_shift"][n], rel=1e-9, abs=1e-15)
+        assert cor["sigma"][n] <= fit.sigma[n] * (1 + 1e-12)
+    assert "cornette_shanks" in budget["phase_note"]
+    assert skyfit.fit(obs, "earth", free=["exposure"], starts=1).corrected is None  # no laplace, no estimate
+
+
 def test_fit_refuses_an_unknown_setting(scene):
     atm, cam, sky = scene
     obs = skyfit.Observation.from_arrays(sky.radiance, cam, sun=SUN, wavelengths=atm.wavelengths)
