@@ -274,10 +274,10 @@ class FitResult:
     def corrected(self) -> dict | None:
         """The estimate corrected for the fit's renderer (None unless fitted with ``laplace=True`` and the total
         sigma): ``values`` at the converged reference's optimum as the budget's refits find it, with ``sigma``,
-        ``interval68``, ``interval95`` and ``derived``. With the phase term (the default for a one-term
-        Henyey-Greenstein fit with g free) these are the calibrated error bars: they covered a richer model's truth
-        at 68 / 95 % in every parameter over 60 synthetic skies, where :attr:`sigma` about the fitted values
-        under-covers the albedo and beta at 68 % (docs/uncertainty.md, "Three draws, 60 skies")."""
+        ``interval68``, ``interval95`` and ``derived``. On 60 synthetic skies from a richer model, fitted with a
+        one-term Henyey-Greenstein phase and the phase term (its default there), these intervals covered the truth at
+        68 / 95 % in every parameter, where :attr:`sigma` about the fitted values under-covers the albedo and beta at
+        68 % (docs/uncertainty.md, "Which to read")."""
         return (self.result.get("laplace") or {}).get("corrected")
 
     @property
