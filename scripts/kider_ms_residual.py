@@ -32,7 +32,10 @@ DAY = ROOT.parent / "shared" / "data" / "kider2014" / "2013-05-27"
 SETTINGS = {
     "hillaire_32x12": dict(multiple="hillaire", lut_directions=32, lut_samples=12),
     "hillaire_64x20": dict(multiple="hillaire", lut_directions=64, lut_samples=20),
-    "bruneton_4": dict(multiple="bruneton", orders=4),
+    # Gauss-Legendre view rays and split zenith bands (ACCURATE_QUADRATURE; every fit's default since session 20):
+    # the HG results' models are Hillaire's and carry no rule, so it is set here; before session 20 this row used
+    # 2017's equal steps (docs/kider.md, item 3)
+    "bruneton_4": dict(multiple="bruneton", orders=4, ray_rule="gauss", density_directions=(16, 32, 2)),
 }
 
 

@@ -124,7 +124,9 @@ def test_followed_factor_tracks_the_rebuilt_one(sky, change):
     # improve too, less)
     err_frozen = torch.quantile(((frozen - 1.0) / (rebuilt - 1.0) - 1.0).abs().flatten(), q)
     err_followed = torch.quantile(((followed - 1.0) / (rebuilt - 1.0) - 1.0).abs().flatten(), q)
-    assert bool((err_frozen > 0.1).all())  # the multiple share does move with the aerosol
+    # the multiple share does move with the aerosol (the smallest move: alpha + 0.6, median 0.099 with the Gauss view
+    # rays of the default since session 20, 0.10 with 2017's)
+    assert bool((err_frozen > 0.08).all())
     assert bool((err_followed < 0.25 * err_frozen).all())
 
 
@@ -604,9 +606,10 @@ def test_refreshes_from_a_known_curvature_end_where_lbfgs_does(sky4, monkeypatch
 
 
 def test_the_ray_rule_setting_reaches_the_tables_and_the_result():
-    """``fit.ray_rule: gauss`` gives the model Gauss-Legendre view rays in its Bruneton tables (equal to a precompute
-    with that quadrature, unlike 2017's trapezoid), is written to the result's model and read back from it; an
-    unknown rule is one FitError naming the key."""
+    """``fit.ray_rule: gauss`` (the default since session 20) gives the model Gauss-Legendre view rays in its
+    Bruneton tables (equal to a precompute with that quadrature, unlike 2017's trapezoid), is written to the result's
+    model and read back from it; ``trapezoid`` is 2017's and what a result without the key is read as; an unknown
+    rule is one FitError naming the key."""
     from skyfit.atmosphere import load_atmosphere
     from skyfit.fit.problem import make_model
     from skyfit.fit.results import model_from_result
@@ -616,11 +619,15 @@ def test_the_ray_rule_setting_reaches_the_tables_and_the_result():
     sizes = [32, 8, 8, 4, 4, 16, 4, 4]
     s = fit_settings({"ray_rule": "gauss", "orders": 2, "multiple": "bruneton", "table_sizes": sizes})
     model = make_model(s)
-    assert model.settings()["ray_rule"] == "gauss" and "ray_rule" not in make_model(fit_settings({"orders": 2, "multiple": "bruneton"})).settings()
+    assert model.settings()["ray_rule"] == "gauss" and make_model(fit_settings({"orders": 2, "multiple": "bruneton"})).ray_rule == "gauss"
+    old = make_model(fit_settings({"orders": 2, "multiple": "bruneton", "ray_rule": "trapezoid"}))
+    assert "ray_rule" not in old.settings()  # 2017's rule is not written: a result without the key was fitted with it
+    assert model_from_result({"integrator": {"name": "chapman"}, "model": old.settings()}).ray_rule == "trapezoid"
     atm = load_atmosphere("earth", [450.0, 650.0])
     got = model.tables(atm).multiple
     with torch.no_grad():
-        want = precompute(atm, orders=2, sizes=TableSizes(*sizes), quadrature=Quadrature(ray_rule="gauss"), progress=False).multiple
+        want = precompute(atm, orders=2, sizes=TableSizes(*sizes), quadrature=Quadrature(ray_rule="gauss", density_zenith=2),
+                          progress=False).multiple
         trap = precompute(atm, orders=2, sizes=TableSizes(*sizes), progress=False).multiple
     torch.testing.assert_close(got, want, rtol=0, atol=0)
     assert float((got - trap).abs().max()) > 1e-3 * float(trap.abs().max())
@@ -633,7 +640,8 @@ def test_the_ray_rule_setting_reaches_the_tables_and_the_result():
 def test_the_density_directions_setting_reaches_the_tables_and_the_result():
     """``fit.density_directions: [8, 16]`` builds the model's Bruneton tables with that many incident directions of
     the scattering density (equal to a precompute with that quadrature, unlike 2017's 16 x 32), is written to the
-    result's model and read back from it (2017's is not written); a malformed value is one FitError naming the key."""
+    result's model and read back from it (2017's 16 x 32 is not written; the default since session 20 is 16 x 32 with
+    two zenith bands split, which is); a malformed value is one FitError naming the key."""
     from skyfit.atmosphere import load_atmosphere
     from skyfit.fit.problem import make_model
     from skyfit.fit.results import model_from_result
@@ -644,7 +652,8 @@ def test_the_density_directions_setting_reaches_the_tables_and_the_result():
     base = {"ray_rule": "gauss", "orders": 2, "multiple": "bruneton", "table_sizes": sizes}
     model = make_model(fit_settings({**base, "density_directions": [8, 16]}))
     assert model.settings()["density_directions"] == [8, 16]
-    assert "density_directions" not in make_model(fit_settings(base)).settings()
+    assert make_model(fit_settings(base)).settings()["density_directions"] == [16, 32, 2]
+    assert "density_directions" not in make_model(fit_settings({**base, "density_directions": [16, 32]})).settings()
     atm = load_atmosphere("earth", [450.0, 650.0])
     got = model.tables(atm).multiple
     with torch.no_grad():

@@ -59,10 +59,14 @@ class FitSettings:
     lut_directions: int = 64
     lut_samples: int = 20
     table_sizes: list[int] | None = None
-    ray_rule: str = "trapezoid"
-    """Bruneton tables' view-ray rule: ``trapezoid`` (2017) or ``gauss`` (skyfit.scattering.multiple.ray_nodes)."""
-    density_directions: list[int] = dataclasses.field(default_factory=lambda: [16, 32])
-    """Bruneton tables' incident directions (theta, phi[, zenith]) of the scattering density (SkyModel.density_directions)."""
+    ray_rule: str = "gauss"
+    """Bruneton tables' view-ray rule: ``gauss`` (skyfit.scattering.multiple.ray_nodes; the default since session 20,
+    as every Bruneton table skyfit builds for a render, a photo, the error budget or an export) or 2017's
+    ``trapezoid``, which puts a hazy sky's orders >= 2 1.4-2.2x too high (docs/luts.md, "The view-ray rule of an
+    exported LUT"). A RESULT.json without the key was fitted with ``trapezoid`` (SkyModel's default)."""
+    density_directions: list[int] = dataclasses.field(default_factory=lambda: [16, 32, 2])
+    """Bruneton tables' incident directions (theta, phi[, zenith]) of the scattering density (SkyModel.density_directions;
+    the two bands nearest the zenith split since session 20, :data:`skyfit.scattering.multiple.ACCURATE_QUADRATURE`)."""
     view_samples: int = 16
     rule: str = "gauss"
     starts: int = FitOptions.starts
