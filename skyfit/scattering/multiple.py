@@ -148,8 +148,9 @@ class Quadrature:
 RAY_RULES = ("trapezoid", "gauss")
 
 ACCURATE_QUADRATURE = Quadrature(ray_rule="gauss", density_zenith=2)
-"""2017's sample counts with Gauss-Legendre view rays and the two density bands nearest the zenith split, at 2017's
-cost: what skyfit's one-sun renders, photo fits and the error budget's reference use, and the LUT exports since
+"""2017's sample counts with Gauss-Legendre view rays and the two density bands nearest the zenith split (12.5 % more
+density directions; a build 1.1-1.3x 2017's): what skyfit's one-sun renders, photo fits and the error budget's
+reference use, and the LUT exports and every fit's Bruneton tables (fit.ray_rule, fit.density_directions) since
 session 20. 2017's equal steps along the view ray put a hazy sky's orders >= 2 1.4-2.2x too high (docs/photos.md,
 "The view ray's rule"); against 32 x 64 density directions this rule is within about 1 % (docs/luts.md, "The view-ray
 rule of an exported LUT"; docs/uncertainty.md, "The reference's view-ray rule")."""
