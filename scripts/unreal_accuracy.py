@@ -22,7 +22,7 @@ from skyfit.atmosphere import load_atmosphere
 from skyfit.export.shader_reference import view_grid
 from skyfit.export.unreal import unreal_render_errors
 from skyfit.scattering.bruneton_tables import TableSizes
-from skyfit.scattering.multiple import precompute
+from skyfit.scattering.multiple import ACCURATE_QUADRATURE, precompute
 
 SUNS = (0.0, 30.0, 60.0, 80.0, 90.0)
 
@@ -36,7 +36,7 @@ def main() -> None:
     torch.set_num_threads(2)
     atm = load_atmosphere(args.config, np.array([680.0, 550.0, 440.0]))
     with torch.no_grad():
-        tables = precompute(atm, orders=4, sizes=TableSizes.parse(args.table_sizes))
+        tables = precompute(atm, orders=4, sizes=TableSizes.parse(args.table_sizes), quadrature=ACCURATE_QUADRATURE)
     view = torch.as_tensor(view_grid(1.0, 15.0))
     view = view[view[:, 2] > 0]
     rows = []

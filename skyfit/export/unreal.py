@@ -312,10 +312,10 @@ def unreal_render_errors(atm_rgb: Atmosphere, view: torch.Tensor, sun_zenith_deg
     Args:
         atm_rgb: the fitted atmosphere on 680, 550, 440 nm.
         view: unit ENU directions of the sky, shape (N, 3).
-        tables: Bruneton's tables of ``atm_rgb`` (precomputed with its defaults when None).
+        tables: Bruneton's tables of ``atm_rgb`` (precomputed at 2017's sizes by ACCURATE_QUADRATURE when None).
         cache: a dict kept between calls (several suns): the rebuilt atmosphere's tables and LUT.
     """
-    from ..scattering.multiple import precompute, sky_radiance
+    from ..scattering.multiple import ACCURATE_QUADRATURE, precompute, sky_radiance
 
     cache = {} if cache is None else cache
     ua = cache.get("atmosphere") or atmosphere_from_unreal(unreal_parameters(atm_rgb), atm_rgb)
@@ -325,7 +325,7 @@ def unreal_render_errors(atm_rgb: Atmosphere, view: torch.Tensor, sun_zenith_deg
     r = torch.full_like(view[:, 2], atm_rgb.bottom_radius)
     args = (r, view[:, 2], sun[2].expand_as(r), view @ sun)
     with torch.no_grad():
-        tables = tables or precompute(atm_rgb)
+        tables = tables or precompute(atm_rgb, quadrature=ACCURATE_QUADRATURE)
         ref = sky_radiance(tables, atm_rgb, *args)
         if "tables" not in cache:
             cache["tables"] = precompute(ua, orders=tables.orders, sizes=tables.sizes, quadrature=tables.quadrature,
