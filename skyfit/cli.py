@@ -455,8 +455,9 @@ def cmd_fit(args) -> int:
             print(f"chosen: {res['selection']['why']}")
         sig = res.get("laplace", {}).get("sigma", {})
         edge = set(res.get("laplace", {}).get("at_bound") or [])
+        kind = {"total": "total sigma", "noise": "noise sigma"}.get(res.get("laplace", {}).get("sigma_mode"), "Laplace")
         for n, v in summary["free"].items():
-            print(f"{n:22s} {v}" + (f" +- {sig[n]:.3g} (Laplace)" if sig.get(n) is not None else "")
+            print(f"{n:22s} {v}" + (f" +- {sig[n]:.3g} ({kind})" if sig.get(n) is not None else "")
                   + ("  (on its bound: no Gaussian sigma; see laplace.interval95)" if n in edge else ""))
         cor = res.get("laplace", {}).get("corrected")
         if cor and any(cor["values"][n] != v for n, v in summary["free"].items()):
