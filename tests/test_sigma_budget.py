@@ -418,7 +418,7 @@ def test_the_reference_integrates_the_view_rays_by_gauss_legendre():
 def test_a_hazy_sky_fitted_with_hillaires_multiple_scattering_gets_a_note():
     """results.model_notes: a fit with Hillaire's orders >= 2 whose aerosol optical depth at 550 nm (interpolated in
     log-log between the model's wavelengths) reaches HILLAIRE_HAZE_AOD gets one note naming the AOD and the error
-    budget's corrected values; a clear sky, single scattering and Bruneton's orders get none."""
+    budget's total sigma; a clear sky, single scattering and Bruneton's orders get none."""
     from skyfit.atmosphere import load_atmosphere
     from skyfit.fit.results import HILLAIRE_HAZE_AOD, model_notes
 
@@ -433,7 +433,7 @@ def test_a_hazy_sky_fitted_with_hillaires_multiple_scattering_gets_a_note():
 
     hazy, depth = notes("earth_hazy")
     assert depth >= HILLAIRE_HAZE_AOD and len(hazy) == 1
-    assert f"{depth:.3g}" in hazy[0] and "laplace.corrected" in hazy[0]
+    assert f"{depth:.3g}" in hazy[0] and "laplace.sigma" in hazy[0]
     clear, depth = notes("earth")
     assert depth < HILLAIRE_HAZE_AOD and clear == []
     assert notes("earth_hazy", orders=1)[0] == [] and notes("earth_hazy", multiple="bruneton")[0] == []

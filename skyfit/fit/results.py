@@ -33,8 +33,10 @@ HILLAIRE_HAZE_AOD = 0.15
 optical depth at 550 nm reaches this gets a note in RESULT.json's ``notes``: against converged orders (the error
 budget's reference, Gauss-Legendre view rays since session 19), Hillaire 32 x 12 on a 1.2 km HG aerosol (g 0.76, sun
 at 30 deg, 550 nm, 5-90 deg elevation) is 2.9 % RMS off at AOD 0.03, 4.4 % at 0.1, 5.9 % at 0.2, 8.7 % at 0.3 and
-16 % at 0.5 (docs/hillaire.md, "Hazy skies"). The note names the error budget (``laplace.corrected``), which refits
-with that reference; it no longer sends the fit to ``--multiple bruneton_lagged``, whose factor a non-photo fit holds
+16 % at 0.5 (docs/hillaire.md, "Hazy skies"). The note points to ``laplace.sigma`` and says what it is worth: on ten
+hazy synthetic skies the total sigma with the phase term covered 0.60 / 0.86 at 68 / 95 %, the corrected estimate
+0.49 / 0.70 (docs/uncertainty.md, "The hazy draw again"; until session 20 the note sent users to the corrected
+values). It no longer sends the fit to ``--multiple bruneton_lagged``, whose factor a non-photo fit holds
 between refreshes instead of following it in the aerosol: on four hazy synthetic skies that fit ended at 2.3-4.2x
 Hillaire's loss with g 0.02-0.14 low and the ground albedo on its bound (docs/hillaire.md). [1]"""
 
@@ -54,8 +56,9 @@ def model_notes(problem: FitProblem, x: torch.Tensor) -> list[str]:
         return []
     return [f"the fitted aerosol optical depth is {aod:.3g} at 550 nm, a hazy sky, and the fit's multiple scattering is "
             "Hillaire's (isotropic from the second order on): 6-16 % RMS from converged orders at AOD 0.2-0.5 "
-            "(docs/hillaire.md), which biases this fit; read the error budget's corrected values (--laplace: "
-            "laplace.corrected), refitted with converged orders"]
+            "(docs/hillaire.md), which biases this fit; --laplace's total sigma (laplace.sigma) widens for it, but on "
+            "synthetic hazy skies no error bar covered the truth as often as it says, and the corrected values "
+            "(laplace.corrected) less often still (docs/uncertainty.md, \"The hazy draw again\")"]
 
 
 def result_dict(problem: FitProblem, res: OptimiseResult, *, command: str, settings: dict, config: dict,
