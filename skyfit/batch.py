@@ -422,7 +422,8 @@ def _scalar(v):
 
 def result_row(item: BatchItem, result: dict | None, info: dict) -> dict:
     """One row of results.parquet: item, kind, time, location, sun, every parameter (``sigma_<name>`` with
-    Laplace), metrics, convergence, wall/CPU seconds, worker, status (``ok`` or the one-line error).
+    Laplace; with the total sigma also ``corrected_<name>`` and ``sigma_corrected_<name>``, RESULT.json's
+    ``laplace.corrected``), metrics, convergence, wall/CPU seconds, worker, status (``ok`` or the one-line error).
 
     A photo's row adds ``time_source`` (``exif``, ``exif+zone`` or ``times``: :func:`photo_time`),
     ``rmse_rel`` (relative RMS over the pixels used), the fitted camera (``camera_projection``, heading
@@ -454,6 +455,12 @@ def result_row(item: BatchItem, result: dict | None, info: dict) -> dict:
         for n, v in (lap.get("derived") or {}).items():
             if isinstance(v, dict) and f"sigma_{n}" in row and row[f"sigma_{n}"] is None:
                 row[f"sigma_{n}"] = v.get("sigma")
+        cor = lap.get("corrected") or {}  # the estimate corrected for the fit's renderer (docs/uncertainty.md)
+        for n, v in (cor.get("values") or {}).items():
+            row[f"corrected_{n}"], row[f"sigma_corrected_{n}"] = _scalar(v), _scalar((cor.get("sigma") or {}).get(n))
+        for n, v in (cor.get("derived") or {}).items():
+            if isinstance(v, dict) and f"corrected_{n}" not in row:
+                row[f"corrected_{n}"], row[f"sigma_corrected_{n}"] = v.get("value"), v.get("sigma")
         m, c = result.get("metrics") or {}, result.get("convergence") or {}
         row.update(rmse=m.get("rmse"), rmse_units=m.get("rmse_units"), delta_e=m.get("delta_e"), loss=m.get("loss"),
                    n_samples=m.get("n_samples"), converged=c.get("converged"), iterations=c.get("iterations"),

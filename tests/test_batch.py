@@ -139,10 +139,33 @@ def test_batch_fits_are_those_of_skyfit_fit_one_by_one(done, data):
         assert abs(row["rmse"] - one.metrics["rmse"]) <= 1e-9
         assert row["mie_g"] == pytest.approx(one.parameters["mie_g"], rel=1e-12, abs=0)
         assert row["sigma_mie_g"] == pytest.approx(one.sigma["mie_g"], rel=1e-9)
+        assert row["corrected_mie_g"] == pytest.approx(one.corrected["values"]["mie_g"], rel=1e-9)
+        assert row["sigma_corrected_mie_g"] == pytest.approx(one.corrected["sigma"]["mie_g"], rel=1e-9)
+        for n, d in one.corrected["derived"].items():  # derived quantities of the free ones, if any
+            assert row[f"corrected_{n}"] == pytest.approx(d["value"], rel=1e-9)
         assert abs(row["mie_g"] - g) < 2e-3  # noise-free data: the truth of each sky comes back
         res = json.loads((out / key / "RESULT.json").read_text())
         assert res["parameters"] == pytest.approx(one.parameters, rel=1e-12)
         assert res["batch"]["item"] == str(data / f"{key}.exr") and res["batch"]["wall_s"] > 0
+
+
+def test_a_row_carries_the_corrected_estimate_and_its_derived_quantities():
+    """results.parquet's corrected_<name> / sigma_corrected_<name>: RESULT.json's laplace.corrected, its free values
+    and its derived ones (the AOD), beside the fitted value and the total sigma."""
+    from skyfit.batch import BatchItem, result_row
+
+    res = {"parameters": {"mie_beta_550": 2e-5, "exposure": 1.1}, "free": ["mie_beta_550", "exposure"],
+           "laplace": {"sigma": {"mie_beta_550": 3e-6, "exposure": 0.02},
+                       "derived": {"mie_aod_550": {"value": 0.03, "sigma": 0.004}},
+                       "corrected": {"values": {"mie_beta_550": 2.4e-5, "exposure": 1.05},
+                                     "sigma": {"mie_beta_550": 1e-6, "exposure": 0.01},
+                                     "derived": {"mie_aod_550": {"value": 0.036, "sigma": 0.0015}}}}}
+    row = result_row(BatchItem("a", "/a.exr", "exr"), res, {})
+    assert (row["mie_beta_550"], row["sigma_mie_beta_550"]) == (2e-5, 3e-6) and row["sigma_mie_aod_550"] == 0.004
+    assert (row["corrected_mie_beta_550"], row["sigma_corrected_mie_beta_550"]) == (2.4e-5, 1e-6)
+    assert (row["corrected_exposure"], row["sigma_corrected_exposure"]) == (1.05, 0.01)
+    assert (row["corrected_mie_aod_550"], row["sigma_corrected_mie_aod_550"]) == (0.036, 0.0015)
+    assert not [k for k in result_row(BatchItem("b", "/b.exr", "exr"), {**res, "laplace": {}}, {}) if "corrected" in k]
 
 
 def test_result_json_is_what_skyfit_fit_writes(done, data, tmp_path, capsys):
