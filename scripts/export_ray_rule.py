@@ -16,6 +16,7 @@ import argparse
 import dataclasses
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -48,7 +49,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     sizes = TableSizes.parse(args.table_sizes)
     view = directions(torch.float64)
-    out = {"command": "scripts/export_ray_rule.py " + " ".join(argv or []), "table_sizes": args.table_sizes,
+    out = {"command": "scripts/export_ray_rule.py " + " ".join(sys.argv[1:] if argv is None else argv), "table_sizes": args.table_sizes,
            "orders": args.orders, "wavelengths_nm": [440.0, 550.0, 680.0], "rules": {k: dataclasses.asdict(v) for k, v in RULES.items()},
            "results": {}}
     for cfg in args.configs.split(","):
