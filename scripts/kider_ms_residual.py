@@ -27,6 +27,8 @@ from pathlib import Path
 
 import torch
 
+from skyfit.scattering.multiple import ACCURATE_QUADRATURE
+
 ROOT = Path(__file__).resolve().parents[1]
 DAY = ROOT.parent / "shared" / "data" / "kider2014" / "2013-05-27"
 SETTINGS = {
@@ -35,7 +37,8 @@ SETTINGS = {
     # Gauss-Legendre view rays and split zenith bands (ACCURATE_QUADRATURE; every fit's default since session 20):
     # the HG results' models are Hillaire's and carry no rule, so it is set here; before session 20 this row used
     # 2017's equal steps (docs/kider.md, item 3)
-    "bruneton_4": dict(multiple="bruneton", orders=4, ray_rule="gauss", density_directions=(16, 32, 2)),
+    "bruneton_4": dict(multiple="bruneton", orders=4, ray_rule=ACCURATE_QUADRATURE.ray_rule,
+                       density_directions=ACCURATE_QUADRATURE.density_directions),
 }
 
 

@@ -112,8 +112,8 @@ def render_model(accuracy: str | None = None, orders: int = 1, multiple: str = "
             # the reference: Bruneton 2017's table sizes with what converges a hazy sky's orders >= 2 (Gauss-Legendre
             # view rays, the density directions' zenith bands split, the mu_s axis for the one sun; docs/envmap.md)
             return SkyModel(make_model(FitSettings()).integrator, orders=orders, multiple="bruneton",
-                            table_sizes=dataclasses.astuple(TableSizes()), sun_window=True, ray_rule="gauss",
-                            density_directions=(16, 32, 2))
+                            table_sizes=dataclasses.astuple(TableSizes()), sun_window=True,
+                            ray_rule=ACCURATE_QUADRATURE.ray_rule, density_directions=ACCURATE_QUADRATURE.density_directions)
         return make_model(FitSettings(integrator="gauss:samples=16", view_samples=32, orders=orders,
                                       multiple="hillaire", lut_size=[32, 32], lut_directions=64, lut_samples=20))
     tol = parse_accuracy(accuracy or ACCURATE)

@@ -73,7 +73,7 @@ from torch import Tensor
 
 from ..render.sky import render_vectors
 from ..scattering.bruneton_tables import TableSizes, sun_window
-from ..scattering.multiple import ACCURATE_QUADRATURE, Quadrature, precompute, sky_radiance
+from ..scattering.multiple import ACCURATE_QUADRATURE, precompute, sky_radiance
 from ..scattering.single import ray_parameters
 from ..transmittance import make_integrator
 from .laplace import (bound_slots, covariance_summary, derived_functions, display_names, laplace_summary,
@@ -118,7 +118,7 @@ density bands nearest the zenith split (:class:`~skyfit.scattering.multiple.Quad
 hazy sky: against these rules with 32 x 64 density directions (equidistant 10 x 10 fisheye, 420-680 nm,
 coverage_model_error.py's truths), its radiance was +21 % at the median pixel and up to 3.9x at AOD 0.31, +4 % (up
 to 1.6x) at AOD 0.15, +0.3 to +0.9 % (up to 1.13x) at AOD 0.015-0.08; these rules are within 1 % of 32 x 64
-everywhere there, at the same cost (docs/uncertainty.md, "The reference's view-ray rule")."""
+everywhere there, at 1.1-1.3x 2017's build (docs/uncertainty.md, "The reference's view-ray rule"; docs/luts.md)."""
 REFERENCE_SUN_WINDOW = True
 """The reference's Bruneton tables span the fit's suns (their zenith angles +- the window's margin, texels at most
 :data:`~skyfit.scattering.bruneton_tables.SUN_SPACING_DEG` apart: :func:`~skyfit.scattering.bruneton_tables.sun_window`)
@@ -146,8 +146,7 @@ class ReferenceModel(SkyModel):
     """
 
     ray_rule: str = REFERENCE_QUADRATURE.ray_rule
-    density_directions: tuple[int, ...] = (REFERENCE_QUADRATURE.density_theta, REFERENCE_QUADRATURE.density_phi,
-                                           REFERENCE_QUADRATURE.density_zenith)
+    density_directions: tuple[int, ...] = REFERENCE_QUADRATURE.density_directions
     reference_tables: tuple[int, int, int, int] = REFERENCE_TABLES
     reference_orders: int = REFERENCE_ORDERS
     sun_window: bool = REFERENCE_SUN_WINDOW

@@ -21,6 +21,7 @@ from ..resources import AUTOGRAD, BASE_MEMORY_BYTES, Estimate, single_scattering
 from ..atmosphere.wavelengths import DEFAULT_WAVELENGTHS, parse_wavelengths
 from ..atmosphere.config import RUN_SECTIONS
 from ..render.auto import fit_overrides
+from ..scattering.multiple import ACCURATE_QUADRATURE
 from ..transmittance import integrator_from_spec
 from .budget import CLUSTERS, DISCREPANCY_DEFAULT, DISCREPANCY_MODELS, SIGMA_MODES
 from .data import Observation, check_noise_model, expand_data_paths, noise_sigma, observation_from_exr, observation_from_kider
@@ -59,12 +60,12 @@ class FitSettings:
     lut_directions: int = 64
     lut_samples: int = 20
     table_sizes: list[int] | None = None
-    ray_rule: str = "gauss"
+    ray_rule: str = ACCURATE_QUADRATURE.ray_rule
     """Bruneton tables' view-ray rule: ``gauss`` (skyfit.scattering.multiple.ray_nodes; the default since session 20,
     as every Bruneton table skyfit builds for a render, a photo, the error budget or an export) or 2017's
     ``trapezoid``, which puts a hazy sky's orders >= 2 1.4-2.2x too high (docs/luts.md, "The view-ray rule of an
     exported LUT"). A RESULT.json without the key was fitted with ``trapezoid`` (SkyModel's default)."""
-    density_directions: list[int] = dataclasses.field(default_factory=lambda: [16, 32, 2])
+    density_directions: list[int] = dataclasses.field(default_factory=lambda: list(ACCURATE_QUADRATURE.density_directions))
     """Bruneton tables' incident directions (theta, phi[, zenith]) of the scattering density (SkyModel.density_directions;
     the two bands nearest the zenith split since session 20, :data:`skyfit.scattering.multiple.ACCURATE_QUADRATURE`)."""
     view_samples: int = 16

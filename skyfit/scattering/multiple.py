@@ -144,6 +144,12 @@ class Quadrature:
             elif not isinstance(v, int) or v < 1:
                 raise ValueError(f"Quadrature.{f.name} must be a positive integer, got {v!r}")
 
+    @property
+    def density_directions(self) -> tuple[int, int, int]:
+        """(density_theta, density_phi, density_zenith): the form of ``SkyModel.density_directions`` and
+        ``fit.density_directions``."""
+        return (self.density_theta, self.density_phi, self.density_zenith)
+
 
 RAY_RULES = ("trapezoid", "gauss")
 
